@@ -1,0 +1,1 @@
+"""jax2d: a 2D rigid-body physics engine in JAX."""

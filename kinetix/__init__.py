@@ -1,0 +1,1 @@
+"""kinetix: the RL environment, tools and command line built on the jax2d engine."""

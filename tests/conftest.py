@@ -1,0 +1,22 @@
+"""Shared test setup: the persistent JAX compilation cache and the path to ../shared."""
+
+from pathlib import Path
+
+import pytest
+
+from kinetix.jaxcache import enable_compilation_cache
+
+SHARED_DIR = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Before any test compiles: a second run on the same machine then mostly loads compiled steps from disk.
+    enable_compilation_cache()
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    """The read-only ../shared directory beside the checkout (Kinetix levels, notes)."""
+    if not SHARED_DIR.is_dir():
+        pytest.skip(f"../shared not found: compatibility tests need the shared Kinetix levels (looked in {SHARED_DIR})")
+    return SHARED_DIR

@@ -1,0 +1,239 @@
+"""Contact constraints: prepare, warm start, solve / relax, restitution, store.
+
+The stages follow Box2D v3's soft step (Catto, "Solver2D", 2024). Contacts are
+prepared once per step from the narrow phase. Each substep then warm starts,
+solves with a soft position bias, integrates positions and relaxes without the
+bias; restitution runs once at the end.
+
+Slots are solved colour by colour (see pairs.py): within a colour no body
+appears twice, so a colour is one vectorised update and the sweep is an exact
+Gauss-Seidel pass. Every index used here is a compile-time constant.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse
+from jax2d.pairs import ContactLayout
+
+
+class ContactConstraints(NamedTuple):
+    """Per slot (S,) or per slot and point (S, 2) constraint data for one step."""
+
+    nx: jax.Array  # (S,)
+    ny: jax.Array
+    friction: jax.Array  # (S,)
+    restitution: jax.Array  # (S,)
+    ma: jax.Array  # (S,) inverse masses and inertias of the two bodies
+    ia: jax.Array
+    mb: jax.Array
+    ib: jax.Array
+    rax: jax.Array  # (S, 2) anchors from the centres of mass, world orientation
+    ray: jax.Array
+    rbx: jax.Array
+    rby: jax.Array
+    base_separation: jax.Array  # (S, 2) separation minus n.(rb - ra) at the step start
+    normal_mass: jax.Array  # (S, 2) 0 for points that do not exist
+    tangent_mass: jax.Array  # (S, 2)
+    relative_velocity: jax.Array  # (S, 2) normal velocity before solving, for restitution
+
+
+class ContactImpulses(NamedTuple):
+    normal: jax.Array  # (S, 2)
+    tangent: jax.Array  # (S, 2)
+    max_normal: jax.Array  # (S, 2) largest normal impulse applied this step
+
+
+def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_mass, inv_inertia,
+            friction, restitution) -> ContactConstraints:
+    """Build constraints from the step's manifolds (one row per slot)."""
+    a, b = layout.slot_a, layout.slot_b
+    nx, ny = manifold.normal[:, 0], manifold.normal[:, 1]
+    px, py = manifold.point[..., 0], manifold.point[..., 1]
+    rax, ray = px - pose.x[a][:, None], py - pose.y[a][:, None]
+    rbx, rby = px - pose.x[b][:, None], py - pose.y[b][:, None]
+    ma, ia, mb, ib = inv_mass[a], inv_inertia[a], inv_mass[b], inv_inertia[b]
+    n_x, n_y = nx[:, None], ny[:, None]
+    base = manifold.separation - ((rbx - rax) * n_x + (rby - ray) * n_y)
+
+    def effective_mass(dx, dy):
+        rna, rnb = cross(rax, ray, dx, dy), cross(rbx, rby, dx, dy)
+        k = (ma + mb)[:, None] + ia[:, None] * rna**2 + ib[:, None] * rnb**2
+        return jnp.where(valid, safe_inverse(k), 0.0)
+
+    dvx, dvy = _relative_velocity(vel.x[a][:, None], vel.y[a][:, None], vel.w[a][:, None],
+                                  vel.x[b][:, None], vel.y[b][:, None], vel.w[b][:, None], rax, ray, rbx, rby)
+    return ContactConstraints(
+        nx=nx, ny=ny,
+        friction=jnp.sqrt(friction[a] * friction[b]),
+        restitution=jnp.maximum(restitution[a], restitution[b]),
+        ma=ma, ia=ia, mb=mb, ib=ib,
+        rax=rax, ray=ray, rbx=rbx, rby=rby,
+        base_separation=base,
+        normal_mass=effective_mass(n_x, n_y),
+        tangent_mass=effective_mass(n_y, -n_x),
+        relative_velocity=dvx * n_x + dvy * n_y,
+    )
+
+
+def _relative_velocity(vax, vay, wa, vbx, vby, wb, rax, ray, rbx, rby):
+    """Velocity of the contact point on b relative to the one on a."""
+    return (vbx - wb * rby) - (vax - wa * ray), (vby + wb * rbx) - (vay + wa * rax)
+
+
+def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose, pose0: Pose):
+    """(S, 2) separation after the bodies moved from pose0 to pose, anchors rotated with them."""
+    a, b = layout.slot_a, layout.slot_b
+
+    def moved_anchor(i, rx, ry):
+        da = (pose.a - pose0.a)[i][:, None]
+        qx, qy = rotate(jnp.cos(da), jnp.sin(da), rx, ry)
+        return (pose.x - pose0.x)[i][:, None] + qx, (pose.y - pose0.y)[i][:, None] + qy
+
+    pax, pay = moved_anchor(a, cc.rax, cc.ray)
+    pbx, pby = moved_anchor(b, cc.rbx, cc.rby)
+    return (pbx - pax) * cc.nx[:, None] + (pby - pay) * cc.ny[:, None] + cc.base_separation
+
+
+def warm_start(layout: ContactLayout, cc: ContactConstraints, imp: ContactImpulses, vel: Vel) -> Vel:
+    """Apply last step's impulses all at once: order does not matter for a plain sum."""
+    tx, ty = cc.ny[:, None], -cc.nx[:, None]
+    px = imp.normal * cc.nx[:, None] + imp.tangent * tx
+    py = imp.normal * cc.ny[:, None] + imp.tangent * ty
+    ta = jnp.sum(cross(cc.rax, cc.ray, px, py), axis=1)
+    tb = jnp.sum(cross(cc.rbx, cc.rby, px, py), axis=1)
+    px, py = jnp.sum(px, axis=1), jnp.sum(py, axis=1)
+    scatter_a, scatter_b = _scatter_matrices(layout)  # (S, M) constants
+    dx = (-cc.ma * px) @ scatter_a + (cc.mb * px) @ scatter_b
+    dy = (-cc.ma * py) @ scatter_a + (cc.mb * py) @ scatter_b
+    dw = (-cc.ia * ta) @ scatter_a + (cc.ib * tb) @ scatter_b
+    return Vel(vel.x + dx, vel.y + dy, vel.w + dw)
+
+
+def _scatter_matrices(layout: ContactLayout):
+    eye = np.eye(layout.num_padded, dtype=np.float32)
+    return jnp.asarray(eye[layout.slot_a]), jnp.asarray(eye[layout.slot_b])
+
+
+def _sweep(layout: ContactLayout, vel: Vel, solve_colour, rows):
+    """Run `solve_colour` on every colour in order, threading body velocities through.
+
+    `rows` is a tuple of (S, ...) arrays; each colour sees its own (K, ...) rows and
+    returns them updated. Bodies ride the circle method's line (pairs.py): side a is
+    the line's first half, side b its second half reversed, and one fixed rotation
+    moves the line to the next colour, so one scan body serves every colour.
+    """
+    K, C = layout.per_colour, layout.num_colours
+    M = layout.num_padded
+    split = lambda x: (x[:K], x[K:][::-1])  # noqa: E731
+    halves = tuple(split(x) for x in vel)  # the line of colour 0 is the natural order
+
+    def body(halves, colour_rows):
+        va = Vel(*(h[0] for h in halves))
+        vb = Vel(*(h[1] for h in halves))
+        va, vb, colour_rows = solve_colour(va, vb, colour_rows)
+        if K > 1:  # rotate every body but line[0] one place along the line
+            halves = tuple((jnp.concatenate([a[:1], b[:1], a[1:K - 1]]), jnp.concatenate([b[1:], a[K - 1:]]))
+                           for a, b in zip(va, vb, strict=True))
+        else:
+            halves = tuple(zip(va, vb, strict=True))
+        return halves, colour_rows
+
+    by_colour = tuple(x.reshape((C, K) + x.shape[1:]) for x in rows)
+    halves, out = jax.lax.scan(body, halves, by_colour)
+    # After M - 1 rotations the line is back in natural order.
+    vel = Vel(*(jnp.concatenate([a, b[::-1]]) for a, b in halves))
+    assert vel.x.shape[0] == M
+    return vel, tuple(x.reshape((C * K,) + x.shape[2:]) for x in out)
+
+
+def _apply(va: Vel, vb: Vel, ma, ia, mb, ib, rax, ray, rbx, rby, px, py):
+    """Apply impulse (px, py) to b and its opposite to a, at the given anchors."""
+    va = Vel(va.x - ma * px, va.y - ma * py, va.w - ia * cross(rax, ray, px, py))
+    vb = Vel(vb.x + mb * px, vb.y + mb * py, vb.w + ib * cross(rbx, rby, px, py))
+    return va, vb
+
+
+def _rows(cc: ContactConstraints):
+    """Per-slot constraint data in a fixed order, for slicing by colour."""
+    return (cc.nx, cc.ny, cc.friction, cc.restitution, cc.ma, cc.ia, cc.mb, cc.ib, cc.rax, cc.ray, cc.rbx, cc.rby,
+            cc.normal_mass, cc.tangent_mass, cc.relative_velocity)
+
+
+def solve(layout: ContactLayout, cc: ContactConstraints, imp: ContactImpulses, vel: Vel, separation,
+          softness: Softness, inv_h, max_push, use_bias: bool) -> tuple[Vel, ContactImpulses]:
+    """One Gauss-Seidel sweep of normal then friction constraints over all colours."""
+
+    def solve_colour(va, vb, rows):
+        (nx, ny, friction, _, ma, ia, mb, ib, rax, ray, rbx, rby, nmass, tmass, _,
+         lam_n, lam_t, lam_max, sep) = rows
+        new_n, new_max = [], []
+        for k in range(2):
+            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax[:, k], ray[:, k], rbx[:, k],
+                                          rby[:, k])
+            vn = dvx * nx + dvy * ny
+            s = sep[:, k]
+            speculative = s > 0.0
+            if use_bias:
+                bias = jnp.where(speculative, s * inv_h, jnp.maximum(softness.bias_rate * s, -max_push))
+                mass_scale = jnp.where(speculative, 1.0, softness.mass_scale)
+                impulse_scale = jnp.where(speculative, 0.0, softness.impulse_scale)
+            else:
+                bias = jnp.where(speculative, s * inv_h, 0.0)
+                mass_scale, impulse_scale = 1.0, 0.0
+            old = lam_n[:, k]
+            impulse = -nmass[:, k] * mass_scale * (vn + bias) - impulse_scale * old
+            new = jnp.maximum(old + impulse, 0.0)
+            impulse = new - old
+            new_n.append(new)
+            new_max.append(jnp.maximum(lam_max[:, k], impulse))
+            va, vb = _apply(va, vb, ma, ia, mb, ib, rax[:, k], ray[:, k], rbx[:, k], rby[:, k],
+                            impulse * nx, impulse * ny)
+        tx, ty = ny, -nx
+        new_t = []
+        for k in range(2):
+            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax[:, k], ray[:, k], rbx[:, k],
+                                          rby[:, k])
+            vt = dvx * tx + dvy * ty
+            limit = friction * new_n[k]
+            old = lam_t[:, k]
+            new = jnp.clip(old - tmass[:, k] * vt, -limit, limit)
+            impulse = new - old
+            new_t.append(new)
+            va, vb = _apply(va, vb, ma, ia, mb, ib, rax[:, k], ray[:, k], rbx[:, k], rby[:, k],
+                            impulse * tx, impulse * ty)
+        return va, vb, (jnp.stack(new_n, 1), jnp.stack(new_t, 1), jnp.stack(new_max, 1))
+
+    vel, (n, t, m) = _sweep(layout, vel, solve_colour,
+                            _rows(cc) + (imp.normal, imp.tangent, imp.max_normal, separation))
+    return vel, ContactImpulses(n, t, m)
+
+
+def restitution(layout: ContactLayout, cc: ContactConstraints, imp: ContactImpulses, vel: Vel,
+                threshold) -> tuple[Vel, ContactImpulses]:
+    """Make approaching points that hit faster than `threshold` leave at e times their approach speed."""
+
+    def solve_colour(va, vb, rows):
+        (nx, ny, _, e, ma, ia, mb, ib, rax, ray, rbx, rby, nmass, _, rel, lam_n, lam_max) = rows
+        new_n = []
+        for k in range(2):
+            bounce = (rel[:, k] < -threshold) & (lam_max[:, k] > 0.0) & (e > 0.0)
+            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax[:, k], ray[:, k], rbx[:, k],
+                                          rby[:, k])
+            vn = dvx * nx + dvy * ny
+            old = lam_n[:, k]
+            impulse = jnp.where(bounce, -nmass[:, k] * (vn + e * rel[:, k]), 0.0)
+            new = jnp.maximum(old + impulse, 0.0)
+            impulse = new - old
+            new_n.append(new)
+            va, vb = _apply(va, vb, ma, ia, mb, ib, rax[:, k], ray[:, k], rbx[:, k], rby[:, k],
+                            impulse * nx, impulse * ny)
+        return va, vb, (jnp.stack(new_n, 1),)
+
+    vel, (n,) = _sweep(layout, vel, solve_colour, _rows(cc) + (imp.normal, imp.max_normal))
+    return vel, ContactImpulses(n, imp.tangent, imp.max_normal)

@@ -1,0 +1,166 @@
+"""Joint constraints: revolute (point + optional motor and limits) and fixed (weld).
+
+Soft constraints as in Box2D v3's soft step. Joints connect bodies chosen by the
+level (data, not constants), so bodies are gathered with one-hot rows (J, M)
+built once per step; a matrix-vector product is cheaper under `vmap` than a
+dynamic gather. Joints are solved one after another (Gauss-Seidel), which keeps
+chains stiff; their count is small and static, so the loop is unrolled.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse
+from jax2d.state import J_ANGULAR, J_LINEAR_X, J_LINEAR_Y, J_LOWER, J_MOTOR, J_UPPER, Joints
+
+
+class JointConstraints(NamedTuple):
+    sel_a: jax.Array  # (J, M) one-hot row of body a, zero for inactive joints
+    sel_b: jax.Array
+    ma: jax.Array  # (J,) inverse masses / inertias
+    ia: jax.Array
+    mb: jax.Array
+    ib: jax.Array
+    axial_mass: jax.Array  # (J,) 1 / (ia + ib)
+    revolute: jax.Array  # (J,) float 1/0 masks
+    weld: jax.Array
+    motor: jax.Array
+    limit: jax.Array
+    motor_target: jax.Array  # (J,) relative angular velocity the motor drives to
+    max_motor_impulse: jax.Array  # (J,) per substep
+    lower: jax.Array  # (J,) angle limits
+    upper: jax.Array
+
+
+class JointFrame(NamedTuple):
+    """Joint geometry at the current substep."""
+
+    rax: jax.Array  # (J,) anchor offsets from the centres of mass, world orientation
+    ray: jax.Array
+    rbx: jax.Array
+    rby: jax.Array
+    cx: jax.Array  # (J,) position error (anchor b - anchor a)
+    cy: jax.Array
+    angle: jax.Array  # (J,) angle_b - angle_a - ref_angle
+
+
+def prepare(joints: Joints, num_padded: int, inv_mass, inv_inertia, motor_actions, h, params) -> JointConstraints:
+    active = joints.active.astype(jnp.float32)
+    sel_a = jax.nn.one_hot(joints.a, num_padded, dtype=jnp.float32) * active[:, None]
+    sel_b = jax.nn.one_hot(joints.b, num_padded, dtype=jnp.float32) * active[:, None]
+    ia, ib = sel_a @ inv_inertia, sel_b @ inv_inertia
+    axial = safe_inverse(ia + ib)
+    revolute = active * (~joints.fixed)
+    motor = revolute * joints.motor_on
+    action = jnp.clip(motor_actions, -1.0, 1.0)
+    return JointConstraints(
+        sel_a=sel_a, sel_b=sel_b,
+        ma=sel_a @ inv_mass, ia=ia, mb=sel_b @ inv_mass, ib=ib,
+        axial_mass=axial,
+        revolute=revolute, weld=active * joints.fixed, motor=motor,
+        limit=revolute * joints.limit_on,
+        motor_target=joints.motor_speed * params.base_motor_speed * action,
+        max_motor_impulse=motor * jnp.abs(joints.motor_power) * params.base_motor_power * axial * h,
+        lower=joints.lower,
+        upper=joints.upper,
+    )
+
+
+def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
+    aa, ab = jc.sel_a @ pose.a, jc.sel_b @ pose.a
+    rax, ray = rotate(jnp.cos(aa), jnp.sin(aa), joints.anchor_a[:, 0], joints.anchor_a[:, 1])
+    rbx, rby = rotate(jnp.cos(ab), jnp.sin(ab), joints.anchor_b[:, 0], joints.anchor_b[:, 1])
+    cx = (jc.sel_b @ pose.x + rbx) - (jc.sel_a @ pose.x + rax)
+    cy = (jc.sel_b @ pose.y + rby) - (jc.sel_a @ pose.y + ray)
+    # Only active rows are meaningful; inactive ones have zero selections and masses.
+    return JointFrame(rax, ray, rbx, rby, cx, cy, ab - aa - joints.ref_angle)
+
+
+def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel) -> Vel:
+    px, py = impulse[:, J_LINEAR_X], impulse[:, J_LINEAR_Y]
+    axial = impulse[:, J_MOTOR] + impulse[:, J_LOWER] - impulse[:, J_UPPER] + impulse[:, J_ANGULAR]
+    ta = cross(fr.rax, fr.ray, px, py) + axial
+    tb = cross(fr.rbx, fr.rby, px, py) + axial
+    return Vel(
+        vel.x + (-jc.ma * px) @ jc.sel_a + (jc.mb * px) @ jc.sel_b,
+        vel.y + (-jc.ma * py) @ jc.sel_a + (jc.mb * py) @ jc.sel_b,
+        vel.w + (-jc.ia * ta) @ jc.sel_a + (jc.ib * tb) @ jc.sel_b,
+    )
+
+
+def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool):
+    """(bias, mass scale, impulse scale) for a position error c."""
+    if speculative:  # inequality constraints: approach a separated limit exactly
+        ahead = c > 0.0
+        if use_bias:
+            return (jnp.where(ahead, c * inv_h, softness.bias_rate * c),
+                    jnp.where(ahead, 1.0, softness.mass_scale), jnp.where(ahead, 0.0, softness.impulse_scale))
+        return jnp.where(ahead, c * inv_h, 0.0), 1.0, 0.0
+    if use_bias:
+        return softness.bias_rate * c, softness.mass_scale, softness.impulse_scale
+    return 0.0, 1.0, 0.0
+
+
+def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Softness, inv_h,
+          use_bias: bool) -> tuple[Vel, jax.Array]:
+    """One Gauss-Seidel pass over the joints: motor, limits, weld angle, then the point."""
+    if impulse.shape[0] == 0:
+        return vel, impulse
+    lam = [list(impulse[:, k]) for k in range(impulse.shape[1])]  # lam[column][joint]
+    for j in range(impulse.shape[0]):
+        sa, sb = jc.sel_a[j], jc.sel_b[j]
+        va0 = (sa @ vel.x, sa @ vel.y, sa @ vel.w)
+        vb0 = (sb @ vel.x, sb @ vel.y, sb @ vel.w)
+        (vax, vay, wa), (vbx, vby, wb) = va0, vb0
+        ma, ia, mb, ib, axial = jc.ma[j], jc.ia[j], jc.mb[j], jc.ib[j], jc.axial_mass[j]
+
+        # Motor: drive the relative angular velocity to the target, with bounded torque.
+        old = lam[J_MOTOR][j]
+        limit = jc.max_motor_impulse[j]
+        new = jnp.clip(old - axial * (wb - wa - jc.motor_target[j]), -limit, limit)
+        d = (new - old) * jc.motor[j]
+        lam[J_MOTOR][j] = old + d
+        wa, wb = wa - ia * d, wb + ib * d
+
+        # Limits: one-sided constraints on the relative angle (lower: angle >= lower, upper: angle <= upper).
+        for col, gap, sign in ((J_LOWER, fr.angle[j] - jc.lower[j], 1.0), (J_UPPER, jc.upper[j] - fr.angle[j], -1.0)):
+            bias, ms, isc = _soft_terms(gap, softness, inv_h, use_bias, speculative=True)
+            old = lam[col][j]
+            new = jnp.maximum(old - axial * ms * (sign * (wb - wa) + bias) - isc * old, 0.0)
+            d = (new - old) * jc.limit[j]
+            lam[col][j] = old + d
+            wa, wb = wa - sign * ia * d, wb + sign * ib * d
+
+        # Weld: lock the relative angle.
+        bias, ms, isc = _soft_terms(fr.angle[j], softness, inv_h, use_bias, speculative=False)
+        old = lam[J_ANGULAR][j]
+        d = (-axial * ms * (wb - wa + bias) - isc * old) * jc.weld[j]
+        lam[J_ANGULAR][j] = old + d
+        wa, wb = wa - ia * d, wb + ib * d
+
+        # Point: keep the two anchors together (solve the 2x2 effective mass).
+        rax, ray, rbx, rby = fr.rax[j], fr.ray[j], fr.rbx[j], fr.rby[j]
+        cdx = (vbx - wb * rby) - (vax - wa * ray)
+        cdy = (vby + wb * rbx) - (vay + wa * rax)
+        bx, ms, isc = _soft_terms(fr.cx[j], softness, inv_h, use_bias, speculative=False)
+        by, _, _ = _soft_terms(fr.cy[j], softness, inv_h, use_bias, speculative=False)
+        k11 = ma + mb + ray * ray * ia + rby * rby * ib
+        k12 = -ray * rax * ia - rby * rbx * ib
+        k22 = ma + mb + rax * rax * ia + rbx * rbx * ib
+        inv_det = safe_inverse(k11 * k22 - k12 * k12)
+        rx, ry = cdx + bx, cdy + by
+        ox, oy = lam[J_LINEAR_X][j], lam[J_LINEAR_Y][j]
+        px = -ms * inv_det * (k22 * rx - k12 * ry) - isc * ox
+        py = -ms * inv_det * (k11 * ry - k12 * rx) - isc * oy
+        lam[J_LINEAR_X][j], lam[J_LINEAR_Y][j] = ox + px, oy + py
+        vax, vay, wa = vax - ma * px, vay - ma * py, wa - ia * cross(rax, ray, px, py)
+        vbx, vby, wb = vbx + mb * px, vby + mb * py, wb + ib * cross(rbx, rby, px, py)
+
+        vel = Vel(vel.x + sa * (vax - va0[0]) + sb * (vbx - vb0[0]),
+                  vel.y + sa * (vay - va0[1]) + sb * (vby - vb0[1]),
+                  vel.w + sa * (wa - va0[2]) + sb * (wb - vb0[2]))
+    return vel, jnp.stack([jnp.stack(col) for col in lam], axis=1)

@@ -1,0 +1,219 @@
+"""One physics step, as a pipeline of stages (Box2D v3's soft step).
+
+    narrow phase            contact manifolds for every pair slot, once per step
+    prepare                 contact and joint constraints, warm-start impulses matched by feature key
+    substeps x n:
+        integrate velocities    gravity and thrusters
+        warm start              last impulses, applied all at once
+        solve                   joints then contacts, with soft position bias
+        integrate positions
+        relax                   joints then contacts, without bias (removes bias energy)
+    restitution             bounce where points hit faster than the threshold
+    store                   impulses for the next step; clamp and NaN guard
+
+Inside the step every body quantity is its own 1-D array over M padded bodies
+(math2d.Vel / Pose); M is the body count rounded up to even, the extra body a
+static dummy that padding contact slots point at.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+
+from jax2d import contact_solver, joint_solver
+from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
+from jax2d.math2d import Pose, Vel, rotate, soft
+from jax2d.pairs import CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
+from jax2d.state import COLLIDE_ALL, Bodies, Contacts, SimParams, SimState, SolverConfig, Thrusters
+
+DEFAULT_CONFIG = SolverConfig()
+
+
+def step(state: SimState, params: SimParams, motor_actions: jax.Array, thruster_actions: jax.Array,
+         config: SolverConfig = DEFAULT_CONFIG) -> SimState:
+    """Advance one scene by params.dt. Pure; jit with `config` static, vmap over scenes freely.
+
+    motor_actions: (J,) in [-1, 1], scaled by each joint's motor speed.
+    thruster_actions: (T,) in [0, 1], scaled by each thruster's power.
+    """
+    layout = contact_layout(state.num_polygons, state.num_circles, config.num_static)
+    M = layout.num_padded
+    b = state.bodies
+    dynamic = b.active & (b.inv_mass > 0)
+    inv_mass = _pad(jnp.where(dynamic, b.inv_mass, 0.0), M)
+    inv_inertia = _pad(jnp.where(dynamic, b.inv_inertia, 0.0), M)
+    dyn = _pad(dynamic.astype(jnp.float32), M)
+    pose0 = Pose(_pad(b.position[:, 0], M), _pad(b.position[:, 1], M), _pad(b.angle, M))
+    vel = Vel(_pad(b.velocity[:, 0], M) * dyn, _pad(b.velocity[:, 1], M) * dyn, _pad(b.angular_velocity, M) * dyn)
+
+    h = params.dt / config.substeps
+    inv_h = 1.0 / h
+    contact_softness = soft(jnp.minimum(params.contact_hertz, 0.25 * inv_h), params.contact_damping_ratio, h)
+    joint_softness = soft(params.joint_hertz, params.joint_damping_ratio, h)
+
+    # Narrow phase and preparation, from the pose at the start of the step.
+    jc = joint_solver.prepare(state.joints, M, inv_mass, inv_inertia, motor_actions, h, params)
+    manifold = narrow_phase(layout, b, params.speculative_distance)
+    enabled = pair_filter(layout, b, jc, M)
+    valid = manifold.valid & enabled[:, None]
+    cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
+                                _pad(b.friction, M), _pad(b.restitution, M))
+    cimp = _matched_impulses(state.contacts, manifold.key, valid, config.warm_start)
+    jimp = state.joints.impulse if config.warm_start else jnp.zeros_like(state.joints.impulse)
+    forces = thruster_forces(state.thrusters, thruster_actions, M, params)
+
+    def substep(_, carry):
+        pose, vel, cimp, jimp = carry
+        vel = integrate_velocities(vel, pose, dyn, inv_mass, inv_inertia, state.gravity, forces, h)
+        frame = joint_solver.frame(state.joints, jc, pose)
+        vel = joint_solver.warm_start(jc, frame, jimp, vel)
+        vel = contact_solver.warm_start(layout, cc, cimp, vel)
+        vel, jimp = joint_solver.solve(jc, frame, jimp, vel, joint_softness, inv_h, use_bias=True)
+        sep = contact_solver.current_separation(layout, cc, pose, pose0)
+        vel, cimp = contact_solver.solve(layout, cc, cimp, vel, sep, contact_softness, inv_h,
+                                         params.max_push_velocity, use_bias=True)
+        pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
+        frame = joint_solver.frame(state.joints, jc, pose)
+        sep = contact_solver.current_separation(layout, cc, pose, pose0)
+        for _ in range(config.relax_iterations):
+            vel, jimp = joint_solver.solve(jc, frame, jimp, vel, joint_softness, inv_h, use_bias=False)
+            vel, cimp = contact_solver.solve(layout, cc, cimp, vel, sep, contact_softness, inv_h,
+                                             params.max_push_velocity, use_bias=False)
+        return pose, vel, cimp, jimp
+
+    pose, vel, cimp, jimp = jax.lax.fori_loop(0, config.substeps, substep, (pose0, vel, cimp, jimp))
+    vel, cimp = contact_solver.restitution(layout, cc, cimp, vel, params.restitution_threshold)
+    return _store(state, params, pose, vel, cimp, jimp, manifold, valid, dyn)
+
+
+def _pad(x, m):
+    """Append static dummy rows so the body count is M."""
+    return jnp.pad(x, (0, m - x.shape[0]))
+
+
+def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
+    """Manifolds for every slot: each kind of pair is evaluated on its own constant index list."""
+    P = b.vertices.shape[0]
+    pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
+    spec = jnp.asarray(speculative, jnp.float32)
+    parts = []
+    for kind, slots in layout.by_kind.items():
+        if not len(slots):
+            continue
+        i, j = layout.slot_a[slots], layout.slot_b[slots]
+        if kind == POLY_POLY:
+            m = jax.vmap(collide_polygons, in_axes=(0,) * 8 + (None,))(
+                pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], spec)
+        elif kind == POLY_CIRCLE:
+            m = jax.vmap(collide_polygon_circle, in_axes=(0,) * 6 + (None,))(
+                pos[i], ang[i], verts[i], nv[i], pos[j], rad[j - P], spec)
+        elif kind == CIRCLE_POLY:  # evaluate as polygon-circle, then point the normal from a to b
+            m = jax.vmap(collide_polygon_circle, in_axes=(0,) * 6 + (None,))(
+                pos[j], ang[j], verts[j], nv[j], pos[i], rad[i - P], spec)
+            m = dataclasses.replace(m, normal=-m.normal)
+        else:
+            m = jax.vmap(collide_circles, in_axes=(0,) * 4 + (None,))(pos[i], rad[i - P], pos[j], rad[j - P], spec)
+        parts.append(m)
+    S = layout.num_slots
+    empty = Manifold(jnp.array([[0.0, 1.0]]), jnp.zeros((1, 2, 2)), jnp.zeros((1, 2)),
+                     jnp.full((1, 2), -1, jnp.int32), jnp.zeros((1, 2), bool))
+    if not parts:
+        return jax.tree.map(lambda x: jnp.repeat(x, S, axis=0), empty)
+    rows = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
+    # Every slot picks its row with a constant index (padding slots take the empty row).
+    return jax.tree.map(lambda x: x[layout.gather], rows)
+
+
+def pair_filter(layout: ContactLayout, b: Bodies, jc: joint_solver.JointConstraints, M: int):
+    """(S,) whether each slot's bodies may collide: active, not both static, modes agree, not jointed."""
+    a, c = layout.slot_a, layout.slot_b
+    active = _pad(b.active, M)
+    moving = _pad(b.active & (b.inv_mass > 0), M)
+    mode = _pad(b.collision_mode, M)
+    modes_agree = (mode[a] == COLLIDE_ALL) | (mode[c] == COLLIDE_ALL) | ((mode[a] > 0) & (mode[c] > 0))
+    return (layout.slot_kind != PADDING) & active[a] & active[c] & (moving[a] | moving[c]) & modes_agree \
+        & ~joint_connected(jc, M)[a, c]
+
+
+def joint_connected(jc: joint_solver.JointConstraints, M: int):
+    """(M, M) bool: bodies linked through any chain of joints (transitive closure by squaring)."""
+    link = jc.sel_a.T @ jc.sel_b
+    reach = (jnp.eye(M) + link + link.T) > 0
+    for _ in range(max(1, math.ceil(math.log2(M)))):
+        r = reach.astype(jnp.float32)
+        reach = (r @ r) > 0
+    return reach
+
+
+def _matched_impulses(old: Contacts, key, valid, warm_start: bool) -> contact_solver.ContactImpulses:
+    """Last step's impulses for points whose feature key is unchanged (either slot), else 0."""
+    zeros = jnp.zeros(key.shape, jnp.float32)
+    if not warm_start:
+        return contact_solver.ContactImpulses(zeros, zeros, zeros)
+    same = (key == old.key) & old.active
+    swapped = (key == old.key[:, ::-1]) & old.active[:, ::-1]
+
+    def pick(x):
+        return jnp.where(valid, jnp.where(same, x, jnp.where(swapped, x[:, ::-1], 0.0)), 0.0)
+
+    return contact_solver.ContactImpulses(pick(old.normal_impulse), pick(old.tangent_impulse), zeros)
+
+
+def thruster_forces(t: Thrusters, actions, M: int, params: SimParams):
+    """Per-thruster selection rows and force magnitudes; directions follow the body each substep."""
+    sel = jax.nn.one_hot(t.body, M, dtype=jnp.float32) * t.active.astype(jnp.float32)[:, None]
+    magnitude = t.power * params.base_thruster_power * jnp.clip(actions, 0.0, 1.0)
+    return sel, magnitude, t
+
+
+def integrate_velocities(vel: Vel, pose: Pose, dyn, inv_mass, inv_inertia, gravity, forces, h) -> Vel:
+    sel, magnitude, t = forces
+    body_angle = sel @ pose.a
+    fx, fy = rotate(jnp.cos(body_angle + t.angle), jnp.sin(body_angle + t.angle), magnitude, 0.0)
+    rx, ry = rotate(jnp.cos(body_angle), jnp.sin(body_angle), t.anchor[:, 0], t.anchor[:, 1])
+    force_x, force_y = fx @ sel, fy @ sel
+    torque = (rx * fy - ry * fx) @ sel
+    return Vel(
+        vel.x + h * (dyn * gravity[0] + inv_mass * force_x),
+        vel.y + h * (dyn * gravity[1] + inv_mass * force_y),
+        vel.w + h * inv_inertia * torque,
+    )
+
+
+def _store(state: SimState, params: SimParams, pose: Pose, vel: Vel, cimp, jimp, manifold, valid, dyn) -> SimState:
+    """Write the result back, clamped; a body whose result is not finite keeps its old pose and stops."""
+    b = state.bodies
+    N = b.active.shape[0]
+    vx, vy, w = vel.x[:N], vel.y[:N], vel.w[:N]
+    speed = jnp.sqrt(vx * vx + vy * vy)
+    scale = jnp.where(speed > params.max_linear_speed, params.max_linear_speed / jnp.maximum(speed, 1e-6), 1.0)
+    vx, vy = vx * scale, vy * scale
+    w = jnp.clip(w, -params.max_angular_speed, params.max_angular_speed)
+    x = jnp.clip(pose.x[:N], -params.max_position, params.max_position)
+    y = jnp.clip(pose.y[:N], -params.max_position, params.max_position)
+    a = pose.a[:N]
+    moving = dyn[:N] > 0
+    ok = moving & jnp.isfinite(vx) & jnp.isfinite(vy) & jnp.isfinite(w) & jnp.isfinite(x) & jnp.isfinite(y) \
+        & jnp.isfinite(a)
+    position = jnp.where(ok[:, None], jnp.stack([x, y], axis=1), b.position)
+    bodies = dataclasses.replace(
+        b,
+        position=position,
+        angle=jnp.where(ok, a, b.angle),
+        velocity=jnp.where(ok[:, None], jnp.stack([vx, vy], axis=1), 0.0),
+        angular_velocity=jnp.where(ok, w, 0.0),
+    )
+    finite = lambda z: jnp.where(jnp.isfinite(z), z, 0.0)  # noqa: E731
+    joints = dataclasses.replace(state.joints, impulse=finite(jimp))
+    contacts = Contacts(
+        normal_impulse=finite(cimp.normal),
+        tangent_impulse=finite(cimp.tangent),
+        key=jnp.where(valid, manifold.key, -1),
+        active=valid,
+        separation=jnp.where(valid, finite(manifold.separation), 0.0),
+    )
+    return SimState(bodies, joints, state.thrusters, contacts, state.gravity)

@@ -1,1 +1,46 @@
-"""jax2d: a 2D rigid-body physics engine in JAX."""
+"""jax2d: a 2D rigid-body physics engine in JAX.
+
+Circles and convex polygons (3-8 vertices), revolute joints with motors and
+limits, fixed joints and thrusters, in fixed-capacity arrays so every scene of
+one capacity shares one compiled step and scenes batch under `vmap`.
+
+    state = jax2d.empty_state(jax2d.Capacity(polygons=5, circles=2, joints=1, thrusters=1))
+    state, floor = jax2d.scene.add_rectangle(state, (2.5, 0.0), 5.0, 0.2, fixed=True)
+    state, ball = jax2d.scene.add_circle(state, (2.5, 2.0), 0.3)
+    step = jax.jit(jax2d.step, static_argnames="config")
+    state = step(state, jax2d.SimParams(), motor_actions, thruster_actions)
+"""
+
+from jax2d import scene
+from jax2d.state import (
+    COLLIDE_ALL,
+    COLLIDE_NORMAL,
+    COLLIDE_ONLY_ALL,
+    Bodies,
+    Capacity,
+    Contacts,
+    Joints,
+    SimParams,
+    SimState,
+    SolverConfig,
+    Thrusters,
+    empty_state,
+)
+from jax2d.step import step
+
+__all__ = [
+    "COLLIDE_ALL",
+    "COLLIDE_NORMAL",
+    "COLLIDE_ONLY_ALL",
+    "Bodies",
+    "Capacity",
+    "Contacts",
+    "Joints",
+    "SimParams",
+    "SimState",
+    "SolverConfig",
+    "Thrusters",
+    "empty_state",
+    "scene",
+    "step",
+]

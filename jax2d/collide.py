@@ -66,52 +66,66 @@ class Manifold:
     valid: jax.Array  # (2,) bool: the point exists and separation < speculative distance
 
 
-def _rotate(angle, v):
-    """Rotate vectors v (..., 2) counter-clockwise by `angle`."""
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    x, y = v[..., 0], v[..., 1]
-    return jnp.stack([c * x - s * y, s * x + c * y], axis=-1)
-
-
-def _unrotate(angle, v):
-    """Rotate vectors v (..., 2) clockwise by `angle` (world -> body orientation)."""
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    x, y = v[..., 0], v[..., 1]
-    return jnp.stack([c * x + s * y, -s * x + c * y], axis=-1)
-
-
-def _normalize(v, fallback):
-    """v / |v|, or `fallback` where |v| is (nearly) zero. Gradient-safe (no 0/0 in either branch)."""
-    len2 = jnp.sum(v * v, axis=-1, keepdims=True)
-    ok = len2 > _TINY
-    unit = v / jnp.sqrt(jnp.where(ok, len2, 1.0))
-    return jnp.where(ok, unit, jnp.asarray(fallback, v.dtype))
-
-
-def _safe_sqrt(x):
-    return jnp.sqrt(jnp.maximum(x, _TINY)) * (x > _TINY)
-
-
 def _f32(x):
     return jnp.asarray(x, jnp.float32)
 
 
-class _Edges:
-    """Real edges of a padded counter-clockwise polygon, as (V,) / (V, 2) arrays."""
+def _select(values, index):
+    """values[index] written as a one-hot sum: under vmap a select beats a gather on the CPU."""
+    return jnp.sum(jnp.where(jnp.arange(values.shape[-1]) == index, values, 0.0), axis=-1)
 
-    def __init__(self, verts, n):
-        num = verts.shape[0]
-        n = jnp.clip(jnp.asarray(n, jnp.int32), 1, num)
-        index = jnp.arange(num)
+
+class _Polygon:
+    """Real edges of a padded counter-clockwise polygon as separate x / y arrays of shape (V,)."""
+
+    def __init__(self, vx, vy, n):
+        size = vx.shape[0]
+        index = jnp.arange(size)
+        n = jnp.clip(jnp.asarray(n, jnp.int32), 1, size)
         self.real = index < n
         # Padding may hold anything (even NaN): replace it by vertex 0 before any arithmetic.
-        self.v1 = jnp.where(self.real[:, None], verts, verts[0])
-        self.next = jnp.where(index + 1 < n, index + 1, 0)
-        self.v2 = self.v1[self.next]
-        edge = self.v2 - self.v1
+        self.x1 = jnp.where(self.real, vx, vx[0])
+        self.y1 = jnp.where(self.real, vy, vy[0])
+        last = index == n - 1
+        self.x2 = jnp.where(last, self.x1[0], jnp.roll(self.x1, -1))
+        self.y2 = jnp.where(last, self.y1[0], jnp.roll(self.y1, -1))
+        self.next = jnp.where(last, 0, index + 1)
+        ex, ey = self.x2 - self.x1, self.y2 - self.y1
+        len2 = ex * ex + ey * ey
+        ok = len2 > _TINY
+        inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, len2, 1.0)), 0.0)
         # Outward normal of a counter-clockwise edge is the edge rotated by -90 degrees.
-        self.normal = _normalize(jnp.stack([edge[:, 1], -edge[:, 0]], axis=-1), (0.0, 1.0))
-        self.face = self.real & (jnp.sum(edge * edge, axis=-1) > _DEGENERATE_EDGE**2)
+        self.nx = jnp.where(ok, ey * inv, 0.0)
+        self.ny = jnp.where(ok, -ex * inv, 1.0)
+        self.face = self.real & (len2 > _DEGENERATE_EDGE**2)
+
+    def pick(self, other: _Polygon, flip):
+        """Elementwise choice between two polygons' edge arrays."""
+        out = object.__new__(_Polygon)
+        for f in ("x1", "y1", "x2", "y2", "nx", "ny", "face", "real"):
+            setattr(out, f, jnp.where(flip, getattr(other, f), getattr(self, f)))
+        return out
+
+
+def _max_face_separation(faces: _Polygon, points: _Polygon):
+    """Best separating face of `faces` against the real vertices of `points`: (index, separation)."""
+    # d[i, j] = signed distance of point j to the line of face i
+    d = faces.nx[:, None] * (points.x1[None, :] - faces.x1[:, None]) \
+        + faces.ny[:, None] * (points.y1[None, :] - faces.y1[:, None])
+    per_face = jnp.min(jnp.where(points.real[None, :], d, _BIG), axis=1)
+    per_face = jnp.where(faces.face, per_face, -_BIG)
+    return jnp.argmax(per_face), jnp.max(per_face)
+
+
+def _clip(p1, p2, d1, d2):
+    """Keep the part of segment p1-p2 (tuples of x, y) where the signed distance d <= 0."""
+    denom = d1 - d2
+    usable = jnp.abs(denom) > _TINY
+    frac = jnp.clip(jnp.where(usable, d1 / jnp.where(usable, denom, 1.0), 0.0), 0.0, 1.0)
+    cx, cy = p1[0] + frac * (p2[0] - p1[0]), p1[1] + frac * (p2[1] - p1[1])
+    q1 = (jnp.where(d1 > 0.0, cx, p1[0]), jnp.where(d1 > 0.0, cy, p1[1]))
+    q2 = (jnp.where(d2 > 0.0, cx, p2[0]), jnp.where(d2 > 0.0, cy, p2[1]))
+    return q1, q2, (d1 <= 0.0) | (d2 <= 0.0)
 
 
 def _pad_vertices(verts, size):
@@ -119,74 +133,59 @@ def _pad_vertices(verts, size):
     return verts if extra == 0 else jnp.pad(verts, ((0, extra), (0, 0)))
 
 
-def _max_face_separation(faces: _Edges, points: _Edges):
-    """Best separating face of `faces` against the real vertices of `points`: (index, separation)."""
-    # d[i, j] = signed distance of point j to the line of face i
-    d = jnp.einsum("ik,ijk->ij", faces.normal, points.v1[None, :, :] - faces.v1[:, None, :])
-    per_face = jnp.min(jnp.where(points.real[None, :], d, _BIG), axis=1)
-    per_face = jnp.where(faces.face, per_face, -_BIG)
-    index = jnp.argmax(per_face)
-    return index, per_face[index]
-
-
-def _clip_segment(p1, p2, d1, d2):
-    """Keep the part of segment p1-p2 where the signed distance d <= 0. Returns (p1, p2, non-empty)."""
-    denom = d1 - d2
-    frac = jnp.where(jnp.abs(denom) > _TINY, d1 / jnp.where(jnp.abs(denom) > _TINY, denom, 1.0), 0.0)
-    cross = p1 + jnp.clip(frac, 0.0, 1.0) * (p2 - p1)
-    new_p1 = jnp.where(d1 > 0.0, cross, p1)
-    new_p2 = jnp.where(d2 > 0.0, cross, p2)
-    return new_p1, new_p2, (d1 <= 0.0) | (d2 <= 0.0)
+def _to_world(c, s, pos, x, y):
+    return pos[0] + c * x - s * y, pos[1] + s * x + c * y
 
 
 def collide_polygons(pos_a, angle_a, verts_a, n_a, pos_b, angle_b, verts_b, n_b, speculative_distance) -> Manifold:
     """Contact manifold between two convex polygons (SAT + reference-face clipping)."""
     pos_a, angle_a, pos_b, angle_b = _f32(pos_a), _f32(angle_a), _f32(pos_b), _f32(angle_b)
-    verts_a, verts_b = _f32(verts_a), _f32(verts_b)
     spec = _f32(speculative_distance)
     size = max(verts_a.shape[0], verts_b.shape[0])
-    verts_a, verts_b = _pad_vertices(verts_a, size), _pad_vertices(verts_b, size)
+    verts_a, verts_b = _pad_vertices(_f32(verts_a), size), _pad_vertices(_f32(verts_b), size)
 
-    # Work in A's body frame: B's vertices are expressed relative to A's centre.
-    a = _Edges(verts_a, n_a)
-    offset = _unrotate(angle_a, pos_b - pos_a)
-    b_in_a = _rotate(angle_b - angle_a, verts_b) + offset
-    b = _Edges(b_in_a, n_b)
+    # Work in A's body frame for precision far from the origin.
+    ca, sa = jnp.cos(angle_a), jnp.sin(angle_a)
+    dx, dy = pos_b[0] - pos_a[0], pos_b[1] - pos_a[1]
+    ox, oy = ca * dx + sa * dy, -sa * dx + ca * dy
+    rel = angle_b - angle_a
+    cr, sr = jnp.cos(rel), jnp.sin(rel)
+    a = _Polygon(verts_a[:, 0], verts_a[:, 1], n_a)
+    b = _Polygon(ox + cr * verts_b[:, 0] - sr * verts_b[:, 1], oy + sr * verts_b[:, 0] + cr * verts_b[:, 1], n_b)
 
     edge_a, sep_a = _max_face_separation(a, b)
     edge_b, sep_b = _max_face_separation(b, a)
     flip = sep_b > sep_a + FLIP_TOLERANCE
-
-    def pick(field):
-        return jnp.where(flip, getattr(b, field), getattr(a, field))
-
-    ref_v1, ref_v2, ref_normal = pick("v1"), pick("v2"), pick("normal")
-    inc_v1, inc_v2, inc_normal, inc_face = (
-        jnp.where(flip, getattr(a, f), getattr(b, f)) for f in ("v1", "v2", "normal", "face")
-    )
+    ref, inc = a.pick(b, flip), b.pick(a, flip)
     ref_edge = jnp.where(flip, edge_b, edge_a)
-    n = ref_normal[ref_edge]
-    r1, r2 = ref_v1[ref_edge], ref_v2[ref_edge]
+    nx, ny = _select(ref.nx, ref_edge), _select(ref.ny, ref_edge)
+    r1 = (_select(ref.x1, ref_edge), _select(ref.y1, ref_edge))
+    r2 = (_select(ref.x2, ref_edge), _select(ref.y2, ref_edge))
 
-    inc_edge = jnp.argmin(jnp.where(inc_face, inc_normal @ n, _BIG))
-    p1, p2 = inc_v1[inc_edge], inc_v2[inc_edge]
+    inc_edge = jnp.argmin(jnp.where(inc.face, inc.nx * nx + inc.ny * ny, _BIG))
+    p1 = (_select(inc.x1, inc_edge), _select(inc.y1, inc_edge))
+    p2 = (_select(inc.x2, inc_edge), _select(inc.y2, inc_edge))
 
     # Side planes of the reference face: the tangent t runs from r1 to r2.
-    t = jnp.stack([-n[1], n[0]])
-    p1, p2, ok1 = _clip_segment(p1, p2, -jnp.dot(p1 - r1, t), -jnp.dot(p2 - r1, t))
-    p1, p2, ok2 = _clip_segment(p1, p2, jnp.dot(p1 - r2, t), jnp.dot(p2 - r2, t))
-    incident = jnp.stack([p1, p2])  # (2, 2)
+    tx, ty = -ny, nx
 
-    separation = (incident - r1) @ n
+    def along(p, r):
+        return (p[0] - r[0]) * tx + (p[1] - r[1]) * ty
+
+    p1, p2, ok1 = _clip(p1, p2, -along(p1, r1), -along(p2, r1))
+    p1, p2, ok2 = _clip(p1, p2, along(p1, r2), along(p2, r2))
+    px, py = jnp.stack([p1[0], p2[0]]), jnp.stack([p1[1], p2[1]])
+
+    separation = (px - r1[0]) * nx + (py - r1[1]) * ny
     valid = ok1 & ok2 & (separation < spec)
-    local_point = incident - 0.5 * separation[:, None] * n
-    point = pos_a + _rotate(angle_a, local_point)
-    normal = _rotate(angle_a, jnp.where(flip, -n, n))
+    wx, wy = _to_world(ca, sa, pos_a, px - 0.5 * separation * nx, py - 0.5 * separation * ny)
+    sign = jnp.where(flip, -1.0, 1.0)
+    normal = jnp.stack([sign * (ca * nx - sa * ny), sign * (sa * nx + ca * ny)])
 
     key = ((flip.astype(jnp.int32) * MAX_VERTICES + ref_edge) * MAX_VERTICES + inc_edge) * 2 + jnp.arange(2)
     return Manifold(
         normal=normal,
-        point=point,
+        point=jnp.stack([wx, wy], axis=-1),
         separation=jnp.where(valid, separation, spec),
         key=jnp.where(valid, key, -1).astype(jnp.int32),
         valid=valid,
@@ -197,32 +196,41 @@ def collide_polygon_circle(pos_p, angle_p, verts, n, pos_c, radius, speculative_
     """Contact between a convex polygon (A) and a circle (B); only point 0 can be valid."""
     pos_p, angle_p, pos_c = _f32(pos_p), _f32(angle_p), _f32(pos_c)
     radius, spec = _f32(radius), _f32(speculative_distance)
-    poly = _Edges(_f32(verts), n)
-    centre = _unrotate(angle_p, pos_c - pos_p)
+    verts = _f32(verts)
+    poly = _Polygon(verts[:, 0], verts[:, 1], n)
+    c, s = jnp.cos(angle_p), jnp.sin(angle_p)
+    dx, dy = pos_c[0] - pos_p[0], pos_c[1] - pos_p[1]
+    cx, cy = c * dx + s * dy, -s * dx + c * dy
 
     # Face of largest separation: decides inside vs outside and gives the normal inside.
-    face_sep = jnp.where(poly.face, jnp.sum(poly.normal * (centre - poly.v1), axis=-1), -_BIG)
+    face_sep = jnp.where(poly.face, poly.nx * (cx - poly.x1) + poly.ny * (cy - poly.y1), -_BIG)
     face = jnp.argmax(face_sep)
-    outside = face_sep[face] > 0.0
+    best = jnp.max(face_sep)
+    outside = best > 0.0
 
     # Closest point on the boundary, over every real edge (exact for any convex polygon).
-    edge = poly.v2 - poly.v1
-    len2 = jnp.sum(edge * edge, axis=-1)
-    u = jnp.clip(jnp.sum((centre - poly.v1) * edge, axis=-1) / jnp.maximum(len2, _TINY), 0.0, 1.0)
-    closest = poly.v1 + u[:, None] * edge
-    dist2 = jnp.where(poly.real, jnp.sum((centre - closest) ** 2, axis=-1), _BIG)
+    ex, ey = poly.x2 - poly.x1, poly.y2 - poly.y1
+    len2 = ex * ex + ey * ey
+    u = jnp.clip(((cx - poly.x1) * ex + (cy - poly.y1) * ey) / jnp.maximum(len2, _TINY), 0.0, 1.0)
+    qx, qy = poly.x1 + u * ex, poly.y1 + u * ey
+    dist2 = jnp.where(poly.real, (cx - qx) ** 2 + (cy - qy) ** 2, _BIG)
     nearest = jnp.argmin(dist2)
-    dist = _safe_sqrt(dist2[nearest])
-    outward = _normalize(centre - closest[nearest], poly.normal[face])
-
-    local_normal = jnp.where(outside, outward, poly.normal[face])
-    gap = jnp.where(outside, dist, face_sep[face])
+    near2 = jnp.min(dist2)
+    dist = jnp.sqrt(jnp.maximum(near2, _TINY)) * (near2 > _TINY)
+    ox, oy = cx - _select(qx, nearest), cy - _select(qy, nearest)
+    olen2 = ox * ox + oy * oy
+    ook = olen2 > _TINY
+    oinv = jnp.where(ook, jax.lax.rsqrt(jnp.where(ook, olen2, 1.0)), 0.0)
+    fnx, fny = _select(poly.nx, face), _select(poly.ny, face)
+    lnx = jnp.where(outside & ook, ox * oinv, fnx)
+    lny = jnp.where(outside & ook, oy * oinv, fny)
+    gap = jnp.where(outside, dist, best)
     separation = gap - radius
-    normal = _rotate(angle_p, local_normal)
+    normal = jnp.stack([c * lnx - s * lny, s * lnx + c * lny])
     point = pos_c - normal * (radius + 0.5 * separation)
 
-    u_near = u[nearest]
-    vertex = jnp.where(u_near >= 1.0, poly.next[nearest], nearest)
+    u_near = _select(u, nearest)
+    vertex = jnp.where(u_near >= 1.0, _select(poly.next.astype(jnp.float32), nearest).astype(jnp.int32), nearest)
     in_vertex_region = outside & ((u_near <= 0.0) | (u_near >= 1.0))
     feature = jnp.where(in_vertex_region, MAX_VERTICES + vertex, jnp.where(outside, nearest, face))
     return _single_point(normal, point, separation, feature, spec)
@@ -232,9 +240,12 @@ def collide_circles(pos_a, radius_a, pos_b, radius_b, speculative_distance) -> M
     """Contact between two circles; only point 0 can be valid."""
     pos_a, pos_b = _f32(pos_a), _f32(pos_b)
     radius_a, radius_b, spec = _f32(radius_a), _f32(radius_b), _f32(speculative_distance)
-    delta = pos_b - pos_a
-    dist = _safe_sqrt(jnp.sum(delta * delta))
-    normal = _normalize(delta, (0.0, 1.0))
+    dx, dy = pos_b[0] - pos_a[0], pos_b[1] - pos_a[1]
+    len2 = dx * dx + dy * dy
+    ok = len2 > _TINY
+    inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, len2, 1.0)), 0.0)
+    dist = len2 * inv
+    normal = jnp.stack([jnp.where(ok, dx * inv, 0.0), jnp.where(ok, dy * inv, 1.0)])
     separation = dist - radius_a - radius_b
     # Midway between A's surface (pos_a + r_a n) and B's surface (pos_b - r_b n).
     point = 0.5 * (pos_a + pos_b + (radius_a - radius_b) * normal)

@@ -87,7 +87,7 @@ def _relative_velocity(vax, vay, wa, vbx, vby, wb, rax, ray, rbx, rby):
 
 
 def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose, pose0: Pose):
-    """(S, 2) separation after the bodies moved from pose0 to pose, anchors rotated with them."""
+    """Packed (C, 2, K) separation after the bodies moved from pose0 to pose, anchors rotated with them."""
     a, b = layout.slot_a, layout.slot_b
 
     def moved_anchor(i, rx, ry):
@@ -97,11 +97,13 @@ def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose
 
     pax, pay = moved_anchor(a, cc.rax, cc.ray)
     pbx, pby = moved_anchor(b, cc.rbx, cc.rby)
-    return (pbx - pax) * cc.nx[:, None] + (pby - pay) * cc.ny[:, None] + cc.base_separation
+    sep = (pbx - pax) * cc.nx[:, None] + (pby - pay) * cc.ny[:, None] + cc.base_separation
+    return pack_rows(layout, [sep[:, 0], sep[:, 1]])
 
 
-def warm_start(layout: ContactLayout, cc: ContactConstraints, imp: ContactImpulses, vel: Vel) -> Vel:
+def warm_start(layout: ContactLayout, cc: ContactConstraints, packed_impulses, vel: Vel) -> Vel:
     """Apply last step's impulses all at once: order does not matter for a plain sum."""
+    imp = unpack_impulses(packed_impulses)
     tx, ty = cc.ny[:, None], -cc.nx[:, None]
     px = imp.normal * cc.nx[:, None] + imp.tangent * tx
     py = imp.normal * cc.ny[:, None] + imp.tangent * ty
@@ -120,64 +122,122 @@ def _scatter_matrices(layout: ContactLayout):
     return jnp.asarray(eye[layout.slot_a]), jnp.asarray(eye[layout.slot_b])
 
 
-def _sweep(layout: ContactLayout, vel: Vel, solve_colour, rows):
-    """Run `solve_colour` on every colour in order, threading body velocities through.
+# Packed layout. Inside the sweeps every per-slot quantity is one row of a colour-major
+# (C, F, K) array: the scan slices one (F, K) block per colour, each field a contiguous row
+# of the colour's K slots. Constraint data is packed once per step; impulses stay packed
+# through all substeps.
+CONST_ROWS = ("nx", "ny", "friction", "restitution", "ma", "ia", "mb", "ib",
+              "rax0", "rax1", "ray0", "ray1", "rbx0", "rbx1", "rby0", "rby1",
+              "nmass0", "nmass1", "tmass0", "tmass1", "rel0", "rel1")
+IMPULSE_ROWS = ("n0", "n1", "t0", "t1", "max0", "max1")
+_ROW = {name: i for i, name in enumerate(CONST_ROWS)}
 
-    `rows` is a tuple of (S, ...) arrays; each colour sees its own (K, ...) rows and
-    returns them updated. Bodies ride the circle method's line (pairs.py): side a is
-    the line's first half, side b its second half reversed, and one fixed rotation
-    moves the line to the next colour, so one scan body serves every colour.
+
+def pack_rows(layout: ContactLayout, rows) -> jax.Array:
+    """A list of (S,) arrays -> (C, F, K)."""
+    C, K = layout.num_colours, layout.per_colour
+    return jnp.stack(rows).astype(jnp.float32).reshape(len(rows), C, K).transpose(1, 0, 2)
+
+
+def unpack_rows(packed) -> jax.Array:
+    """(C, F, K) -> (F, S)."""
+    C, F, K = packed.shape
+    return packed.transpose(1, 0, 2).reshape(F, C * K)
+
+
+def pack_constraints(layout: ContactLayout, cc: ContactConstraints) -> jax.Array:
+    per_point = (cc.rax, cc.ray, cc.rbx, cc.rby, cc.normal_mass, cc.tangent_mass, cc.relative_velocity)
+    rows = [cc.nx, cc.ny, cc.friction, cc.restitution, cc.ma, cc.ia, cc.mb, cc.ib]
+    rows += [x[:, k] for x in per_point for k in range(2)]
+    return pack_rows(layout, rows)
+
+
+def pack_impulses(layout: ContactLayout, imp: ContactImpulses) -> jax.Array:
+    return pack_rows(layout, [x[:, k] for x in imp for k in range(2)])
+
+
+def unpack_impulses(packed) -> ContactImpulses:
+    rows = unpack_rows(packed)
+    return ContactImpulses(*(jnp.stack([rows[i], rows[i + 1]], axis=1) for i in range(0, 6, 2)))
+
+
+class _Block:
+    """Named access to one colour's constant rows."""
+
+    def __init__(self, block):
+        self.block = block
+
+    def __getattr__(self, name):
+        return self.block[_ROW[name]]
+
+    def point(self, name, k):
+        return self.block[_ROW[f"{name}{k}"]]
+
+
+def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var):
+    """Run `solve_colour(va, vb, const_block, var_block) -> (va, vb, new_var_block)` on every colour in order.
+
+    Bodies ride the circle method's line (pairs.py): side a is the line's first half,
+    side b its second half reversed, and one fixed rotation moves the line to the next
+    colour, so one scan body serves every colour.
     """
-    K, C = layout.per_colour, layout.num_colours
-    M = layout.num_padded
-    split = lambda x: (x[:K], x[K:][::-1])  # noqa: E731
-    halves = tuple(split(x) for x in vel)  # the line of colour 0 is the natural order
+    K = layout.per_colour
+    halves = tuple((x[:K], x[K:][::-1]) for x in vel)  # the line of colour 0 is the natural order
 
-    def body(halves, colour_rows):
+    def body(halves, blocks):
         va = Vel(*(h[0] for h in halves))
         vb = Vel(*(h[1] for h in halves))
-        va, vb, colour_rows = solve_colour(va, vb, colour_rows)
+        va, vb, out = solve_colour(va, vb, _Block(blocks[0]), blocks[1])
         if K > 1:  # rotate every body but line[0] one place along the line
             halves = tuple((jnp.concatenate([a[:1], b[:1], a[1:K - 1]]), jnp.concatenate([b[1:], a[K - 1:]]))
                            for a, b in zip(va, vb, strict=True))
         else:
             halves = tuple(zip(va, vb, strict=True))
-        return halves, colour_rows
+        return halves, out
 
-    by_colour = tuple(x.reshape((C, K) + x.shape[1:]) for x in rows)
-    halves, out = jax.lax.scan(body, halves, by_colour)
+    halves, out = jax.lax.scan(body, halves, (const, var))
     # After M - 1 rotations the line is back in natural order.
-    vel = Vel(*(jnp.concatenate([a, b[::-1]]) for a, b in halves))
-    assert vel.x.shape[0] == M
-    return vel, tuple(x.reshape((C * K,) + x.shape[2:]) for x in out)
+    return Vel(*(jnp.concatenate([a, b[::-1]]) for a, b in halves)), out
 
 
 def _apply(va: Vel, vb: Vel, ma, ia, mb, ib, rax, ray, rbx, rby, px, py):
     """Apply impulse (px, py) to b and its opposite to a, at the given anchors."""
     va = Vel(va.x - ma * px, va.y - ma * py, va.w - ia * cross(rax, ray, px, py))
     vb = Vel(vb.x + mb * px, vb.y + mb * py, vb.w + ib * cross(rbx, rby, px, py))
-    return va, vb
+    return _materialise(va, vb)
 
 
-def _rows(cc: ContactConstraints):
-    """Per-slot constraint data in a fixed order, for slicing by colour."""
-    return (cc.nx, cc.ny, cc.friction, cc.restitution, cc.ma, cc.ia, cc.mb, cc.ib, cc.rax, cc.ray, cc.rbx, cc.rby,
-            cc.normal_mass, cc.tangent_mass, cc.relative_velocity)
+_EYE6 = np.eye(6, dtype=np.float32)
 
 
-def solve(layout: ContactLayout, cc: ContactConstraints, imp: ContactImpulses, vel: Vel, separation,
-          softness: Softness, inv_h, max_push, use_bias: bool) -> tuple[Vel, ContactImpulses]:
-    """One Gauss-Seidel sweep of normal then friction constraints over all colours."""
+def _materialise(va: Vel, vb: Vel):
+    """Force the six velocity rows into a buffer.
 
-    def solve_colour(va, vb, rows):
-        (nx, ny, friction, _, ma, ia, mb, ib, rax, ray, rbx, rby, nmass, tmass, _,
-         lam_n, lam_t, lam_max, sep) = rows
+    XLA's CPU fusion copies a chain of elementwise ops into every consumer, so a
+    colour's four sequential point updates would be recomputed for each of its
+    outputs. A product with the identity is not fused, so it cuts the chain
+    (optimization_barrier does not survive the CPU pipeline).
+    """
+    stacked = jnp.einsum("ij,j...->i...", _EYE6, jnp.stack(list(va) + list(vb)),
+                         precision=jax.lax.Precision.HIGHEST)
+    return Vel(*stacked[:3]), Vel(*stacked[3:])
+
+
+def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness: Softness, inv_h, max_push,
+          use_bias: bool) -> tuple[Vel, jax.Array]:
+    """One Gauss-Seidel sweep of normal then friction constraints over all colours.
+
+    const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
+    """
+
+    def solve_colour(va, vb, c: _Block, var):
+        lam_n, lam_t, lam_max, sep = var[0:2], var[2:4], var[4:6], var[6:8]
         new_n, new_max = [], []
         for k in range(2):
-            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax[:, k], ray[:, k], rbx[:, k],
-                                          rby[:, k])
-            vn = dvx * nx + dvy * ny
-            s = sep[:, k]
+            rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
+            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
+            vn = dvx * c.nx + dvy * c.ny
+            s = sep[k]
             speculative = s > 0.0
             if use_bias:
                 bias = jnp.where(speculative, s * inv_h, jnp.maximum(softness.bias_rate * s, -max_push))
@@ -186,54 +246,47 @@ def solve(layout: ContactLayout, cc: ContactConstraints, imp: ContactImpulses, v
             else:
                 bias = jnp.where(speculative, s * inv_h, 0.0)
                 mass_scale, impulse_scale = 1.0, 0.0
-            old = lam_n[:, k]
-            impulse = -nmass[:, k] * mass_scale * (vn + bias) - impulse_scale * old
+            old = lam_n[k]
+            impulse = -c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old
             new = jnp.maximum(old + impulse, 0.0)
             impulse = new - old
             new_n.append(new)
-            new_max.append(jnp.maximum(lam_max[:, k], impulse))
-            va, vb = _apply(va, vb, ma, ia, mb, ib, rax[:, k], ray[:, k], rbx[:, k], rby[:, k],
-                            impulse * nx, impulse * ny)
-        tx, ty = ny, -nx
+            new_max.append(jnp.maximum(lam_max[k], impulse))
+            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
+        tx, ty = c.ny, -c.nx
         new_t = []
         for k in range(2):
-            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax[:, k], ray[:, k], rbx[:, k],
-                                          rby[:, k])
+            rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
+            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
             vt = dvx * tx + dvy * ty
-            limit = friction * new_n[k]
-            old = lam_t[:, k]
-            new = jnp.clip(old - tmass[:, k] * vt, -limit, limit)
+            limit = c.friction * new_n[k]
+            old = lam_t[k]
+            new = jnp.clip(old - c.point("tmass", k) * vt, -limit, limit)
             impulse = new - old
             new_t.append(new)
-            va, vb = _apply(va, vb, ma, ia, mb, ib, rax[:, k], ray[:, k], rbx[:, k], rby[:, k],
-                            impulse * tx, impulse * ty)
-        return va, vb, (jnp.stack(new_n, 1), jnp.stack(new_t, 1), jnp.stack(new_max, 1))
+            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * tx, impulse * ty)
+        return va, vb, jnp.stack(new_n + new_t + new_max)
 
-    vel, (n, t, m) = _sweep(layout, vel, solve_colour,
-                            _rows(cc) + (imp.normal, imp.tangent, imp.max_normal, separation))
-    return vel, ContactImpulses(n, t, m)
+    return _sweep(layout, vel, solve_colour, const, jnp.concatenate([impulses, separation], axis=1))
 
 
-def restitution(layout: ContactLayout, cc: ContactConstraints, imp: ContactImpulses, vel: Vel,
-                threshold) -> tuple[Vel, ContactImpulses]:
+def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold) -> tuple[Vel, jax.Array]:
     """Make approaching points that hit faster than `threshold` leave at e times their approach speed."""
 
-    def solve_colour(va, vb, rows):
-        (nx, ny, _, e, ma, ia, mb, ib, rax, ray, rbx, rby, nmass, _, rel, lam_n, lam_max) = rows
+    def solve_colour(va, vb, c: _Block, var):
         new_n = []
         for k in range(2):
-            bounce = (rel[:, k] < -threshold) & (lam_max[:, k] > 0.0) & (e > 0.0)
-            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax[:, k], ray[:, k], rbx[:, k],
-                                          rby[:, k])
-            vn = dvx * nx + dvy * ny
-            old = lam_n[:, k]
-            impulse = jnp.where(bounce, -nmass[:, k] * (vn + e * rel[:, k]), 0.0)
+            rel = c.point("rel", k)
+            bounce = (rel < -threshold) & (var[4 + k] > 0.0) & (c.restitution > 0.0)
+            rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
+            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
+            vn = dvx * c.nx + dvy * c.ny
+            old = var[k]
+            impulse = jnp.where(bounce, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0)
             new = jnp.maximum(old + impulse, 0.0)
             impulse = new - old
             new_n.append(new)
-            va, vb = _apply(va, vb, ma, ia, mb, ib, rax[:, k], ray[:, k], rbx[:, k], rby[:, k],
-                            impulse * nx, impulse * ny)
-        return va, vb, (jnp.stack(new_n, 1),)
+            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
+        return va, vb, jnp.concatenate([jnp.stack(new_n), var[2:]])
 
-    vel, (n,) = _sweep(layout, vel, solve_colour, _rows(cc) + (imp.normal, imp.max_normal))
-    return vel, ContactImpulses(n, imp.tangent, imp.max_normal)
+    return _sweep(layout, vel, solve_colour, const, impulses)

@@ -107,39 +107,41 @@ def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool)
 
 def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Softness, inv_h,
           use_bias: bool) -> tuple[Vel, jax.Array]:
-    """One Gauss-Seidel pass over the joints: motor, limits, weld angle, then the point."""
+    """One Gauss-Seidel pass over the joints (a loop, so it compiles once): motor, limits, weld angle, point."""
     if impulse.shape[0] == 0:
         return vel, impulse
-    lam = [list(impulse[:, k]) for k in range(impulse.shape[1])]  # lam[column][joint]
-    for j in range(impulse.shape[0]):
+
+    def one_joint(j, carry):
+        vel, impulse = carry
+        lam = impulse[j]
         sa, sb = jc.sel_a[j], jc.sel_b[j]
         va0 = (sa @ vel.x, sa @ vel.y, sa @ vel.w)
         vb0 = (sb @ vel.x, sb @ vel.y, sb @ vel.w)
         (vax, vay, wa), (vbx, vby, wb) = va0, vb0
         ma, ia, mb, ib, axial = jc.ma[j], jc.ia[j], jc.mb[j], jc.ib[j], jc.axial_mass[j]
+        angle = fr.angle[j]
 
         # Motor: drive the relative angular velocity to the target, with bounded torque.
-        old = lam[J_MOTOR][j]
         limit = jc.max_motor_impulse[j]
-        new = jnp.clip(old - axial * (wb - wa - jc.motor_target[j]), -limit, limit)
-        d = (new - old) * jc.motor[j]
-        lam[J_MOTOR][j] = old + d
+        motor = lam[J_MOTOR] + jc.motor[j] * (
+            jnp.clip(lam[J_MOTOR] - axial * (wb - wa - jc.motor_target[j]), -limit, limit) - lam[J_MOTOR])
+        d = motor - lam[J_MOTOR]
         wa, wb = wa - ia * d, wb + ib * d
 
         # Limits: one-sided constraints on the relative angle (lower: angle >= lower, upper: angle <= upper).
-        for col, gap, sign in ((J_LOWER, fr.angle[j] - jc.lower[j], 1.0), (J_UPPER, jc.upper[j] - fr.angle[j], -1.0)):
+        limits = []
+        for col, gap, sign in ((J_LOWER, angle - jc.lower[j], 1.0), (J_UPPER, jc.upper[j] - angle, -1.0)):
             bias, ms, isc = _soft_terms(gap, softness, inv_h, use_bias, speculative=True)
-            old = lam[col][j]
+            old = lam[col]
             new = jnp.maximum(old - axial * ms * (sign * (wb - wa) + bias) - isc * old, 0.0)
             d = (new - old) * jc.limit[j]
-            lam[col][j] = old + d
+            limits.append(old + d)
             wa, wb = wa - sign * ia * d, wb + sign * ib * d
 
         # Weld: lock the relative angle.
-        bias, ms, isc = _soft_terms(fr.angle[j], softness, inv_h, use_bias, speculative=False)
-        old = lam[J_ANGULAR][j]
-        d = (-axial * ms * (wb - wa + bias) - isc * old) * jc.weld[j]
-        lam[J_ANGULAR][j] = old + d
+        bias, ms, isc = _soft_terms(angle, softness, inv_h, use_bias, speculative=False)
+        d = (-axial * ms * (wb - wa + bias) - isc * lam[J_ANGULAR]) * jc.weld[j]
+        weld = lam[J_ANGULAR] + d
         wa, wb = wa - ia * d, wb + ib * d
 
         # Point: keep the two anchors together (solve the 2x2 effective mass).
@@ -153,14 +155,19 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
         k22 = ma + mb + rax * rax * ia + rbx * rbx * ib
         inv_det = safe_inverse(k11 * k22 - k12 * k12)
         rx, ry = cdx + bx, cdy + by
-        ox, oy = lam[J_LINEAR_X][j], lam[J_LINEAR_Y][j]
+        ox, oy = lam[J_LINEAR_X], lam[J_LINEAR_Y]
         px = -ms * inv_det * (k22 * rx - k12 * ry) - isc * ox
         py = -ms * inv_det * (k11 * ry - k12 * rx) - isc * oy
-        lam[J_LINEAR_X][j], lam[J_LINEAR_Y][j] = ox + px, oy + py
         vax, vay, wa = vax - ma * px, vay - ma * py, wa - ia * cross(rax, ray, px, py)
         vbx, vby, wb = vbx + mb * px, vby + mb * py, wb + ib * cross(rbx, rby, px, py)
 
+        columns = [None] * 6
+        columns[J_LINEAR_X], columns[J_LINEAR_Y] = ox + px, oy + py
+        columns[J_ANGULAR], columns[J_MOTOR], columns[J_LOWER], columns[J_UPPER] = weld, motor, *limits
+        impulse = impulse.at[j].set(jnp.stack(columns))
         vel = Vel(vel.x + sa * (vax - va0[0]) + sb * (vbx - vb0[0]),
                   vel.y + sa * (vay - va0[1]) + sb * (vby - vb0[1]),
                   vel.w + sa * (wa - va0[2]) + sb * (wb - vb0[2]))
-    return vel, jnp.stack([jnp.stack(col) for col in lam], axis=1)
+        return vel, impulse
+
+    return jax.lax.fori_loop(0, impulse.shape[0], one_joint, (vel, impulse))

@@ -23,11 +23,12 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jax2d import contact_solver, joint_solver
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.math2d import Pose, Vel, rotate, soft
-from jax2d.pairs import CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
+from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
 from jax2d.state import COLLIDE_ALL, Bodies, Contacts, SimParams, SimState, SolverConfig, Thrusters
 
 DEFAULT_CONFIG = SolverConfig()
@@ -62,7 +63,9 @@ def step(state: SimState, params: SimParams, motor_actions: jax.Array, thruster_
     valid = manifold.valid & enabled[:, None]
     cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
                                 _pad(b.friction, M), _pad(b.restitution, M))
-    cimp = _matched_impulses(state.contacts, manifold.key, valid, config.warm_start)
+    const = contact_solver.pack_constraints(layout, cc)
+    cimp = contact_solver.pack_impulses(layout, _matched_impulses(state.contacts, manifold.key, valid,
+                                                                  config.warm_start))
     jimp = state.joints.impulse if config.warm_start else jnp.zeros_like(state.joints.impulse)
     forces = thruster_forces(state.thrusters, thruster_actions, M, params)
 
@@ -74,20 +77,20 @@ def step(state: SimState, params: SimParams, motor_actions: jax.Array, thruster_
         vel = contact_solver.warm_start(layout, cc, cimp, vel)
         vel, jimp = joint_solver.solve(jc, frame, jimp, vel, joint_softness, inv_h, use_bias=True)
         sep = contact_solver.current_separation(layout, cc, pose, pose0)
-        vel, cimp = contact_solver.solve(layout, cc, cimp, vel, sep, contact_softness, inv_h,
+        vel, cimp = contact_solver.solve(layout, const, cimp, vel, sep, contact_softness, inv_h,
                                          params.max_push_velocity, use_bias=True)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(state.joints, jc, pose)
         sep = contact_solver.current_separation(layout, cc, pose, pose0)
         for _ in range(config.relax_iterations):
             vel, jimp = joint_solver.solve(jc, frame, jimp, vel, joint_softness, inv_h, use_bias=False)
-            vel, cimp = contact_solver.solve(layout, cc, cimp, vel, sep, contact_softness, inv_h,
+            vel, cimp = contact_solver.solve(layout, const, cimp, vel, sep, contact_softness, inv_h,
                                              params.max_push_velocity, use_bias=False)
         return pose, vel, cimp, jimp
 
     pose, vel, cimp, jimp = jax.lax.fori_loop(0, config.substeps, substep, (pose0, vel, cimp, jimp))
-    vel, cimp = contact_solver.restitution(layout, cc, cimp, vel, params.restitution_threshold)
-    return _store(state, params, pose, vel, cimp, jimp, manifold, valid, dyn)
+    vel, cimp = contact_solver.restitution(layout, const, cimp, vel, params.restitution_threshold)
+    return _store(state, params, pose, vel, contact_solver.unpack_impulses(cimp), jimp, manifold, valid, dyn)
 
 
 def _pad(x, m):
@@ -100,24 +103,25 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
     P = b.vertices.shape[0]
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
     spec = jnp.asarray(speculative, jnp.float32)
+    kinds = layout.by_kind
     parts = []
-    for kind, slots in layout.by_kind.items():
-        if not len(slots):
-            continue
-        i, j = layout.slot_a[slots], layout.slot_b[slots]
-        if kind == POLY_POLY:
-            m = jax.vmap(collide_polygons, in_axes=(0,) * 8 + (None,))(
-                pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], spec)
-        elif kind == POLY_CIRCLE:
-            m = jax.vmap(collide_polygon_circle, in_axes=(0,) * 6 + (None,))(
-                pos[i], ang[i], verts[i], nv[i], pos[j], rad[j - P], spec)
-        elif kind == CIRCLE_POLY:  # evaluate as polygon-circle, then point the normal from a to b
-            m = jax.vmap(collide_polygon_circle, in_axes=(0,) * 6 + (None,))(
-                pos[j], ang[j], verts[j], nv[j], pos[i], rad[i - P], spec)
-            m = dataclasses.replace(m, normal=-m.normal)
-        else:
-            m = jax.vmap(collide_circles, in_axes=(0,) * 4 + (None,))(pos[i], rad[i - P], pos[j], rad[j - P], spec)
-        parts.append(m)
+    i, j = layout.slot_a[kinds[POLY_POLY]], layout.slot_b[kinds[POLY_POLY]]
+    if len(i):
+        parts.append(jax.vmap(collide_polygons, in_axes=(0,) * 8 + (None,))(
+            pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], spec))
+    # Polygon-circle pairs in either order share one call; circle-first pairs flip the normal.
+    pc, cp = kinds[POLY_CIRCLE], kinds[CIRCLE_POLY]
+    poly = np.concatenate([layout.slot_a[pc], layout.slot_b[cp]])
+    circle = np.concatenate([layout.slot_b[pc], layout.slot_a[cp]])
+    if len(poly):
+        m = jax.vmap(collide_polygon_circle, in_axes=(0,) * 6 + (None,))(
+            pos[poly], ang[poly], verts[poly], nv[poly], pos[circle], rad[circle - P], spec)
+        sign = np.concatenate([np.ones(len(pc)), -np.ones(len(cp))]).astype(np.float32)[:, None]
+        parts.append(dataclasses.replace(m, normal=m.normal * sign))
+    i, j = layout.slot_a[kinds[CIRCLE_CIRCLE]], layout.slot_b[kinds[CIRCLE_CIRCLE]]
+    if len(i):
+        parts.append(jax.vmap(collide_circles, in_axes=(0,) * 4 + (None,))(
+            pos[i], rad[i - P], pos[j], rad[j - P], spec))
     S = layout.num_slots
     empty = Manifold(jnp.array([[0.0, 1.0]]), jnp.zeros((1, 2, 2)), jnp.zeros((1, 2)),
                      jnp.full((1, 2), -1, jnp.int32), jnp.zeros((1, 2), bool))

@@ -79,6 +79,19 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", metavar="DIR", help="directory for saved levels and recordings")
 
 
+def _validate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("files", nargs="+", metavar="FILE", help="level files, in our format or the Kinetix JSON")
+    parser.add_argument("--steps", type=positive_int, default=1000, help="physics steps to simulate (default: 1000)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random actions (default: 0)")
+
+
+def _convert_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", metavar="IN", help="level file to read (format detected from its content)")
+    parser.add_argument("output", metavar="OUT", help="file to write (replaced atomically)")
+    parser.add_argument("--to", choices=["ours", "kinetix"], help="format to write (default: the other one)")
+    parser.add_argument("--size", choices=["s", "m", "l"], help="size class to write (default: the input's)")
+
+
 COMMANDS: list[Command] = [
     Command(
         ("bench", "engine"),
@@ -87,6 +100,18 @@ COMMANDS: list[Command] = [
         _bench_engine_arguments,
     ),
     Command(("serve",), "start the browser editor and playground", "kinetix.cli:serve_placeholder", _serve_arguments),
+    Command(
+        ("validate",),
+        "load level files and simulate them with random actions; exit status 1 if any fails",
+        "kinetix.validate:run",
+        _validate_arguments,
+    ),
+    Command(
+        ("convert",),
+        "convert a level file between our format and the public Kinetix JSON",
+        "kinetix.convert:run",
+        _convert_arguments,
+    ),
 ]
 
 GROUP_HELP = {("bench",): "measure performance"}

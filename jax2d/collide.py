@@ -93,7 +93,7 @@ class _Polygon:
         ex, ey = self.x2 - self.x1, self.y2 - self.y1
         len2 = ex * ex + ey * ey
         ok = len2 > _TINY
-        inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, len2, 1.0)), 0.0)
+        inv = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, len2, 1.0)), 0.0)
         # Outward normal of a counter-clockwise edge is the edge rotated by -90 degrees.
         self.nx = jnp.where(ok, ey * inv, 0.0)
         self.ny = jnp.where(ok, -ex * inv, 1.0)
@@ -220,7 +220,7 @@ def collide_polygon_circle(pos_p, angle_p, verts, n, pos_c, radius, speculative_
     ox, oy = cx - _select(qx, nearest), cy - _select(qy, nearest)
     olen2 = ox * ox + oy * oy
     ook = olen2 > _TINY
-    oinv = jnp.where(ook, jax.lax.rsqrt(jnp.where(ook, olen2, 1.0)), 0.0)
+    oinv = jnp.where(ook, 1.0 / jnp.sqrt(jnp.where(ook, olen2, 1.0)), 0.0)
     fnx, fny = _select(poly.nx, face), _select(poly.ny, face)
     lnx = jnp.where(outside & ook, ox * oinv, fnx)
     lny = jnp.where(outside & ook, oy * oinv, fny)
@@ -243,7 +243,7 @@ def collide_circles(pos_a, radius_a, pos_b, radius_b, speculative_distance) -> M
     dx, dy = pos_b[0] - pos_a[0], pos_b[1] - pos_a[1]
     len2 = dx * dx + dy * dy
     ok = len2 > _TINY
-    inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, len2, 1.0)), 0.0)
+    inv = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, len2, 1.0)), 0.0)
     dist = len2 * inv
     normal = jnp.stack([jnp.where(ok, dx * inv, 0.0), jnp.where(ok, dy * inv, 1.0)])
     separation = dist - radius_a - radius_b

@@ -16,7 +16,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse
 from jax2d.pairs import ContactLayout
@@ -101,27 +100,6 @@ def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose
     return pack_rows(layout, [sep[:, 0], sep[:, 1]])
 
 
-def warm_start(layout: ContactLayout, cc: ContactConstraints, packed_impulses, vel: Vel) -> Vel:
-    """Apply last step's impulses all at once: order does not matter for a plain sum."""
-    imp = unpack_impulses(packed_impulses)
-    tx, ty = cc.ny[:, None], -cc.nx[:, None]
-    px = imp.normal * cc.nx[:, None] + imp.tangent * tx
-    py = imp.normal * cc.ny[:, None] + imp.tangent * ty
-    ta = jnp.sum(cross(cc.rax, cc.ray, px, py), axis=1)
-    tb = jnp.sum(cross(cc.rbx, cc.rby, px, py), axis=1)
-    px, py = jnp.sum(px, axis=1), jnp.sum(py, axis=1)
-    scatter_a, scatter_b = _scatter_matrices(layout)  # (S, M) constants
-    dx = (-cc.ma * px) @ scatter_a + (cc.mb * px) @ scatter_b
-    dy = (-cc.ma * py) @ scatter_a + (cc.mb * py) @ scatter_b
-    dw = (-cc.ia * ta) @ scatter_a + (cc.ib * tb) @ scatter_b
-    return Vel(vel.x + dx, vel.y + dy, vel.w + dw)
-
-
-def _scatter_matrices(layout: ContactLayout):
-    eye = np.eye(layout.num_padded, dtype=np.float32)
-    return jnp.asarray(eye[layout.slot_a]), jnp.asarray(eye[layout.slot_b])
-
-
 # Packed layout. Inside the sweeps every per-slot quantity is one row of a colour-major
 # (C, F, K) array: the scan slices one (F, K) block per colour, each field a contiguous row
 # of the colour's K slots. Constraint data is packed once per step; impulses stay packed
@@ -171,7 +149,9 @@ class _Block:
         return self.block[_ROW[name]]
 
     def point(self, name, k):
-        return self.block[_ROW[f"{name}{k}"]]
+        """Row of point k (k may be traced: both points' rows are adjacent)."""
+        i = _ROW[f"{name}0"]
+        return self.block[i:i + 2][k]
 
 
 def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var):
@@ -204,23 +184,26 @@ def _apply(va: Vel, vb: Vel, ma, ia, mb, ib, rax, ray, rbx, rby, px, py):
     """Apply impulse (px, py) to b and its opposite to a, at the given anchors."""
     va = Vel(va.x - ma * px, va.y - ma * py, va.w - ia * cross(rax, ray, px, py))
     vb = Vel(vb.x + mb * px, vb.y + mb * py, vb.w + ib * cross(rbx, rby, px, py))
-    return _materialise(va, vb)
+    return va, vb
 
 
-_EYE6 = np.eye(6, dtype=np.float32)
+def warm_start(layout: ContactLayout, const, impulses, vel: Vel) -> Vel:
+    """Re-apply the accumulated impulses before solving.
 
-
-def _materialise(va: Vel, vb: Vel):
-    """Force the six velocity rows into a buffer.
-
-    XLA's CPU fusion copies a chain of elementwise ops into every consumer, so a
-    colour's four sequential point updates would be recomputed for each of its
-    outputs. A product with the identity is not fused, so it cuts the chain
-    (optimization_barrier does not survive the CPU pipeline).
+    A sweep over the colours rather than one scatter-add: the sum on each body then
+    always runs in colour order, so batched and single runs agree bitwise.
     """
-    stacked = jnp.einsum("ij,j...->i...", _EYE6, jnp.stack(list(va) + list(vb)),
-                         precision=jax.lax.Precision.HIGHEST)
-    return Vel(*stacked[:3]), Vel(*stacked[3:])
+
+    def apply_colour(va, vb, c: _Block, var):
+        tx, ty = c.ny, -c.nx
+        for k in range(2):
+            px = var[k] * c.nx + var[2 + k] * tx
+            py = var[k] * c.ny + var[2 + k] * ty
+            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, c.point("rax", k), c.point("ray", k),
+                            c.point("rbx", k), c.point("rby", k), px, py)
+        return va, vb, var
+
+    return _sweep(layout, vel, apply_colour, const, impulses)[0]
 
 
 def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness: Softness, inv_h, max_push,
@@ -228,44 +211,49 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
     """One Gauss-Seidel sweep of normal then friction constraints over all colours.
 
     const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
+    Within a colour the two points are loops, not unrolled: a loop boundary stores its
+    carry, which stops XLA from re-deriving each output from the whole chain of updates.
     """
 
-    def solve_colour(va, vb, c: _Block, var):
-        lam_n, lam_t, lam_max, sep = var[0:2], var[2:4], var[4:6], var[6:8]
-        new_n, new_max = [], []
-        for k in range(2):
-            rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
-            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
-            vn = dvx * c.nx + dvy * c.ny
-            s = sep[k]
-            speculative = s > 0.0
-            if use_bias:
-                bias = jnp.where(speculative, s * inv_h, jnp.maximum(softness.bias_rate * s, -max_push))
-                mass_scale = jnp.where(speculative, 1.0, softness.mass_scale)
-                impulse_scale = jnp.where(speculative, 0.0, softness.impulse_scale)
-            else:
-                bias = jnp.where(speculative, s * inv_h, 0.0)
-                mass_scale, impulse_scale = 1.0, 0.0
-            old = lam_n[k]
-            impulse = -c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old
-            new = jnp.maximum(old + impulse, 0.0)
-            impulse = new - old
-            new_n.append(new)
-            new_max.append(jnp.maximum(lam_max[k], impulse))
-            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
+    def normal(k, carry, c: _Block, sep):
+        va, vb, lam_n, lam_max = carry
+        rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
+        dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
+        vn = dvx * c.nx + dvy * c.ny
+        s = sep[k]
+        speculative = s > 0.0
+        if use_bias:
+            bias = jnp.where(speculative, s * inv_h, jnp.maximum(softness.bias_rate * s, -max_push))
+            mass_scale = jnp.where(speculative, 1.0, softness.mass_scale)
+            impulse_scale = jnp.where(speculative, 0.0, softness.impulse_scale)
+        else:
+            bias = jnp.where(speculative, s * inv_h, 0.0)
+            mass_scale, impulse_scale = 1.0, 0.0
+        old = lam_n[k]
+        impulse = -c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old
+        new = jnp.maximum(old + impulse, 0.0)
+        impulse = new - old
+        va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
+        return va, vb, lam_n.at[k].set(new), lam_max.at[k].set(jnp.maximum(lam_max[k], impulse))
+
+    def friction(k, carry, c: _Block, lam_n):
+        va, vb, lam_t = carry
         tx, ty = c.ny, -c.nx
-        new_t = []
-        for k in range(2):
-            rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
-            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
-            vt = dvx * tx + dvy * ty
-            limit = c.friction * new_n[k]
-            old = lam_t[k]
-            new = jnp.clip(old - c.point("tmass", k) * vt, -limit, limit)
-            impulse = new - old
-            new_t.append(new)
-            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * tx, impulse * ty)
-        return va, vb, jnp.stack(new_n + new_t + new_max)
+        rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
+        dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
+        vt = dvx * tx + dvy * ty
+        limit = c.friction * lam_n[k]
+        old = lam_t[k]
+        new = jnp.clip(old - c.point("tmass", k) * vt, -limit, limit)
+        impulse = new - old
+        va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * tx, impulse * ty)
+        return va, vb, lam_t.at[k].set(new)
+
+    def solve_colour(va, vb, c: _Block, var):
+        va, vb, lam_n, lam_max = jax.lax.fori_loop(
+            0, 2, lambda k, carry: normal(k, carry, c, var[6:8]), (va, vb, var[0:2], var[4:6]))
+        va, vb, lam_t = jax.lax.fori_loop(0, 2, lambda k, carry: friction(k, carry, c, lam_n), (va, vb, var[2:4]))
+        return va, vb, jnp.concatenate([lam_n, lam_t, lam_max])
 
     return _sweep(layout, vel, solve_colour, const, jnp.concatenate([impulses, separation], axis=1))
 
@@ -273,20 +261,22 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
 def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold) -> tuple[Vel, jax.Array]:
     """Make approaching points that hit faster than `threshold` leave at e times their approach speed."""
 
+    def bounce(k, carry, c: _Block, lam_max):
+        va, vb, lam_n = carry
+        rel = c.point("rel", k)
+        hit = (rel < -threshold) & (lam_max[k] > 0.0) & (c.restitution > 0.0)
+        rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
+        dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
+        vn = dvx * c.nx + dvy * c.ny
+        old = lam_n[k]
+        impulse = jnp.where(hit, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0)
+        new = jnp.maximum(old + impulse, 0.0)
+        impulse = new - old
+        va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
+        return va, vb, lam_n.at[k].set(new)
+
     def solve_colour(va, vb, c: _Block, var):
-        new_n = []
-        for k in range(2):
-            rel = c.point("rel", k)
-            bounce = (rel < -threshold) & (var[4 + k] > 0.0) & (c.restitution > 0.0)
-            rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
-            dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
-            vn = dvx * c.nx + dvy * c.ny
-            old = var[k]
-            impulse = jnp.where(bounce, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0)
-            new = jnp.maximum(old + impulse, 0.0)
-            impulse = new - old
-            new_n.append(new)
-            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
-        return va, vb, jnp.concatenate([jnp.stack(new_n), var[2:]])
+        va, vb, lam_n = jax.lax.fori_loop(0, 2, lambda k, carry: bounce(k, carry, c, var[4:6]), (va, vb, var[0:2]))
+        return va, vb, jnp.concatenate([lam_n, var[2:]])
 
     return _sweep(layout, vel, solve_colour, const, impulses)

@@ -81,15 +81,21 @@ def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
 
 
 def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel) -> Vel:
-    px, py = impulse[:, J_LINEAR_X], impulse[:, J_LINEAR_Y]
-    axial = impulse[:, J_MOTOR] + impulse[:, J_LOWER] - impulse[:, J_UPPER] + impulse[:, J_ANGULAR]
-    ta = cross(fr.rax, fr.ray, px, py) + axial
-    tb = cross(fr.rbx, fr.rby, px, py) + axial
-    return Vel(
-        vel.x + (-jc.ma * px) @ jc.sel_a + (jc.mb * px) @ jc.sel_b,
-        vel.y + (-jc.ma * py) @ jc.sel_a + (jc.mb * py) @ jc.sel_b,
-        vel.w + (-jc.ia * ta) @ jc.sel_a + (jc.ib * tb) @ jc.sel_b,
-    )
+    """Re-apply every joint's accumulated impulses before solving, joint by joint (a fixed order
+    of additions, so batched and single runs agree bitwise)."""
+
+    def one_joint(j, vel):
+        lam = impulse[j]
+        px, py = lam[J_LINEAR_X], lam[J_LINEAR_Y]
+        turn = lam[J_MOTOR] + lam[J_LOWER] - lam[J_UPPER] + lam[J_ANGULAR]
+        ta = -jc.ia[j] * (cross(fr.rax[j], fr.ray[j], px, py) + turn)
+        tb = jc.ib[j] * (cross(fr.rbx[j], fr.rby[j], px, py) + turn)
+        sa, sb = jc.sel_a[j], jc.sel_b[j]
+        return Vel(vel.x - sa * (jc.ma[j] * px) + sb * (jc.mb[j] * px),
+                   vel.y - sa * (jc.ma[j] * py) + sb * (jc.mb[j] * py),
+                   vel.w + sa * ta + sb * tb)
+
+    return jax.lax.fori_loop(0, impulse.shape[0], one_joint, vel)
 
 
 def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool):
@@ -107,7 +113,7 @@ def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool)
 
 def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Softness, inv_h,
           use_bias: bool) -> tuple[Vel, jax.Array]:
-    """One Gauss-Seidel pass over the joints (a loop, so it compiles once): motor, limits, weld angle, point."""
+    """One Gauss-Seidel pass over the joints (a loop, so it compiles once): motor, limits, then point / weld."""
     if impulse.shape[0] == 0:
         return vel, impulse
 
@@ -138,32 +144,46 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
             limits.append(old + d)
             wa, wb = wa - sign * ia * d, wb + sign * ib * d
 
-        # Weld: lock the relative angle.
-        bias, ms, isc = _soft_terms(angle, softness, inv_h, use_bias, speculative=False)
-        d = (-axial * ms * (wb - wa + bias) - isc * lam[J_ANGULAR]) * jc.weld[j]
-        weld = lam[J_ANGULAR] + d
-        wa, wb = wa - ia * d, wb + ib * d
-
-        # Point: keep the two anchors together (solve the 2x2 effective mass).
+        # Point (revolute) or point + angle (weld), as one block solve so the linear and
+        # angular parts do not fight each other (solving them one after the other rings
+        # and, with warm starting, grew without bound on a spinning welded cluster).
         rax, ray, rbx, rby = fr.rax[j], fr.ray[j], fr.rbx[j], fr.rby[j]
         cdx = (vbx - wb * rby) - (vax - wa * ray)
         cdy = (vby + wb * rbx) - (vay + wa * rax)
+        cdw = wb - wa
         bx, ms, isc = _soft_terms(fr.cx[j], softness, inv_h, use_bias, speculative=False)
         by, _, _ = _soft_terms(fr.cy[j], softness, inv_h, use_bias, speculative=False)
+        bw, _, _ = _soft_terms(angle, softness, inv_h, use_bias, speculative=False)
         k11 = ma + mb + ray * ray * ia + rby * rby * ib
         k12 = -ray * rax * ia - rby * rbx * ib
         k22 = ma + mb + rax * rax * ia + rbx * rbx * ib
-        inv_det = safe_inverse(k11 * k22 - k12 * k12)
-        rx, ry = cdx + bx, cdy + by
-        ox, oy = lam[J_LINEAR_X], lam[J_LINEAR_Y]
-        px = -ms * inv_det * (k22 * rx - k12 * ry) - isc * ox
-        py = -ms * inv_det * (k11 * ry - k12 * rx) - isc * oy
-        vax, vay, wa = vax - ma * px, vay - ma * py, wa - ia * cross(rax, ray, px, py)
-        vbx, vby, wb = vbx + mb * px, vby + mb * py, wb + ib * cross(rbx, rby, px, py)
+        k13 = -ray * ia - rby * ib
+        k23 = rax * ia + rbx * ib
+        k33 = ia + ib
+        rx, ry, rw = cdx + bx, cdy + by, cdw + bw
+        ox, oy, ow = lam[J_LINEAR_X], lam[J_LINEAR_Y], lam[J_ANGULAR]
+        # Revolute: 2x2.
+        inv2 = safe_inverse(k11 * k22 - k12 * k12)
+        px2 = inv2 * (k22 * rx - k12 * ry)
+        py2 = inv2 * (k11 * ry - k12 * rx)
+        # Weld: 3x3 by cofactors (K is symmetric).
+        c11, c12, c13 = k22 * k33 - k23 * k23, k13 * k23 - k12 * k33, k12 * k23 - k13 * k22
+        c22, c23, c33 = k11 * k33 - k13 * k13, k12 * k13 - k11 * k23, k11 * k22 - k12 * k12
+        inv3 = safe_inverse(k11 * c11 + k12 * c12 + k13 * c13)
+        px3 = inv3 * (c11 * rx + c12 * ry + c13 * rw)
+        py3 = inv3 * (c12 * rx + c22 * ry + c23 * rw)
+        pw3 = inv3 * (c13 * rx + c23 * ry + c33 * rw)
+        weld = jc.weld[j] > 0
+        px = -ms * jnp.where(weld, px3, px2) - isc * ox
+        py = -ms * jnp.where(weld, py3, py2) - isc * oy
+        pw = jnp.where(weld, -ms * pw3 - isc * ow, 0.0)
+        vax, vay, wa = vax - ma * px, vay - ma * py, wa - ia * (cross(rax, ray, px, py) + pw)
+        vbx, vby, wb = vbx + mb * px, vby + mb * py, wb + ib * (cross(rbx, rby, px, py) + pw)
+        weld_impulse = ow + pw
 
         columns = [None] * 6
         columns[J_LINEAR_X], columns[J_LINEAR_Y] = ox + px, oy + py
-        columns[J_ANGULAR], columns[J_MOTOR], columns[J_LOWER], columns[J_UPPER] = weld, motor, *limits
+        columns[J_ANGULAR], columns[J_MOTOR], columns[J_LOWER], columns[J_UPPER] = weld_impulse, motor, *limits
         impulse = impulse.at[j].set(jnp.stack(columns))
         vel = Vel(vel.x + sa * (vax - va0[0]) + sb * (vbx - vb0[0]),
                   vel.y + sa * (vay - va0[1]) + sb * (vby - vb0[1]),

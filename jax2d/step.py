@@ -74,7 +74,7 @@ def step(state: SimState, params: SimParams, motor_actions: jax.Array, thruster_
         vel = integrate_velocities(vel, pose, dyn, inv_mass, inv_inertia, state.gravity, forces, h)
         frame = joint_solver.frame(state.joints, jc, pose)
         vel = joint_solver.warm_start(jc, frame, jimp, vel)
-        vel = contact_solver.warm_start(layout, cc, cimp, vel)
+        vel = contact_solver.warm_start(layout, const, cimp, vel)
         vel, jimp = joint_solver.solve(jc, frame, jimp, vel, joint_softness, inv_h, use_bias=True)
         sep = contact_solver.current_separation(layout, cc, pose, pose0)
         vel, cimp = contact_solver.solve(layout, const, cimp, vel, sep, contact_softness, inv_h,
@@ -179,8 +179,13 @@ def integrate_velocities(vel: Vel, pose: Pose, dyn, inv_mass, inv_inertia, gravi
     body_angle = sel @ pose.a
     fx, fy = rotate(jnp.cos(body_angle + t.angle), jnp.sin(body_angle + t.angle), magnitude, 0.0)
     rx, ry = rotate(jnp.cos(body_angle), jnp.sin(body_angle), t.anchor[:, 0], t.anchor[:, 1])
-    force_x, force_y = fx @ sel, fy @ sel
-    torque = (rx * fy - ry * fx) @ sel
+    # Sum thruster by thruster, in slot order: a reduction could add them in another
+    # order under vmap and break bitwise batch equality.
+    force_x, force_y, torque = jnp.zeros_like(vel.x), jnp.zeros_like(vel.x), jnp.zeros_like(vel.x)
+    for t_i in range(sel.shape[0]):
+        force_x = force_x + fx[t_i] * sel[t_i]
+        force_y = force_y + fy[t_i] * sel[t_i]
+        torque = torque + (rx[t_i] * fy[t_i] - ry[t_i] * fx[t_i]) * sel[t_i]
     return Vel(
         vel.x + h * (dyn * gravity[0] + inv_mass * force_x),
         vel.y + h * (dyn * gravity[1] + inv_mass * force_y),

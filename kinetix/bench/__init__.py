@@ -1,0 +1,1 @@
+"""Benchmarks behind `kinetix bench ...`: `engine` measures the jax2d step on fixed scenes (see scenes.py)."""

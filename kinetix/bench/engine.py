@@ -1,0 +1,289 @@
+"""`kinetix bench engine`: physics throughput and latency of jax2d on the benchmark scenes.
+
+Two ways of running the step are measured, because the project uses both:
+- batched rollout (training): B scenes under vmap, `steps` steps inside one jitted lax.scan;
+  steps_per_s = B * steps / seconds of one run, excluding compilation (see REPEAT_BELOW_S).
+- Python loop (interactive server): one scene, one jitted step per call, blocking on each
+  result as the server does every frame; latency_ms is the mean per call.
+
+Compile times are cold: the persistent compilation cache is switched off for the whole benchmark
+and JAX's in-memory caches are cleared before each measured compilation. A scan's compile_s is
+trace + lower + XLA compile (`jit(...).lower(...).compile()`); the loop's is its first call.
+
+JAX is imported inside the functions, so importing this module (e.g. for `kinetix --help`) stays cheap.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import resource
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+LOOP_CALLS = 500  # timed calls of the single-scene step
+# A rollout is timed on its first run after compiling, and again when that took less than this many seconds:
+# first-run costs (allocation) matter only in short runs, and long ones (l at B=2048) take minutes each.
+REPEAT_BELOW_S = 2.0
+LOOP_WARMUP = 20  # untimed calls first, so allocation and dispatch caches are warm
+SEED = 0
+NO_LEVEL_LOADER = "--level needs the level loader (kinetix.levels), which is not built yet"
+
+
+@dataclass(frozen=True)
+class Workload:
+    """What to step: a name for the report, a maker of B stacked scenes, the solver config and physics params."""
+
+    name: str
+    make_batch: Callable[[int], Any]  # batch size -> SimState with a leading batch axis
+    config: Any  # jax2d.SolverConfig
+    params: Any = None  # jax2d.SimParams; None for the defaults
+
+
+def builtin_workloads(sizes: list[str], max_vertices: int = 8) -> list[Workload]:
+    from kinetix.bench import scenes
+
+    def maker(size: str) -> Callable[[int], Any]:
+        return lambda batch: scenes.build_batch(size, batch, seed=SEED, max_vertices=max_vertices)
+
+    return [Workload(size, maker(size), scenes.CONFIG) for size in sizes]
+
+
+def level_workload(path: str) -> Workload:
+    """The scene of a level file, repeated B times, with the level's physics params.
+
+    Raises ImportError while the level loader (kinetix.levels) does not exist, ValueError for a bad file.
+    """
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jax2d import SolverConfig
+    from kinetix.levels import load_level
+
+    file = load_level(path)
+    state = file.level.sim
+    # Standard levels keep the 4 walls static in polygon slots 0-3; only then may the solver skip their pairs.
+    walls_static = state.num_polygons >= 4 and bool((np.asarray(state.bodies.inv_mass[:4]) == 0).all())
+    config = SolverConfig(num_static=4 if walls_static else 0)
+    return Workload(file.name or path, lambda batch: jax.tree.map(lambda x: jnp.stack([x] * batch), state),
+                    config, file.params.sim_params())
+
+
+@contextlib.contextmanager
+def cold_compiles() -> Iterator[None]:
+    """Switch the persistent compilation cache off (and back to its old setting on exit).
+
+    JAX decides once per process whether the cache is in use, at the first compilation; resetting
+    the cache makes it look at `jax_enable_compilation_cache` again.
+    """
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    was_enabled = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    compilation_cache.reset_cache()
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", was_enabled)
+        compilation_cache.reset_cache()
+
+
+def _array_params(params=None):
+    """SimParams (default ones if None) as float32 arrays, so calls do not convert Python floats every time."""
+    import jax
+    import jax.numpy as jnp
+
+    from jax2d import SimParams
+
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), SimParams() if params is None else params)
+
+
+def _all_finite(state) -> bool:
+    """Whether every float in the state is finite (the engine promises never to emit NaN)."""
+    import jax
+    import numpy as np
+
+    arrays = [np.asarray(leaf) for leaf in jax.tree.leaves(state)]
+    return all(bool(np.isfinite(a).all()) for a in arrays if np.issubdtype(a.dtype, np.floating))
+
+
+def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = True) -> dict:
+    """Steps per second of `batch` scenes stepped `steps` times inside one jitted scan, and its cold compile time."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jax2d import step
+
+    scenes = workload.make_batch(batch)
+    rng = np.random.default_rng(SEED)
+    motor = jnp.asarray(rng.uniform(-1.0, 1.0, (steps, batch, scenes.num_joints)), jnp.float32)
+    thrust = jnp.asarray(rng.uniform(0.0, 1.0, (steps, batch, scenes.num_thrusters)), jnp.float32)
+    params = _array_params(workload.params)
+    step_batch = jax.vmap(lambda s, p, m, t: step(s, p, m, t, config=workload.config), in_axes=(0, None, 0, 0))
+
+    # Actions and params are arguments, not closed-over constants, so they are not baked into the program.
+    def rollout(state, params, motor, thrust):
+        return jax.lax.scan(lambda s, a: (step_batch(s, params, *a), None), state, (motor, thrust))[0]
+
+    if cold:
+        jax.clear_caches()
+    start = time.perf_counter()
+    compiled = jax.jit(rollout).lower(scenes, params, motor, thrust).compile()
+    compile_s = time.perf_counter() - start
+
+    start = time.perf_counter()
+    final = jax.block_until_ready(compiled(scenes, params, motor, thrust))
+    seconds = time.perf_counter() - start
+    if seconds < REPEAT_BELOW_S:  # a short run is skewed by first-run allocations: time a second one
+        start = time.perf_counter()
+        final = jax.block_until_ready(compiled(scenes, params, motor, thrust))
+        seconds = time.perf_counter() - start
+    return {
+        "what": "engine",
+        "size": workload.name,
+        "batch": batch,
+        "steps": steps,
+        "steps_per_s": batch * steps / seconds,
+        "seconds": seconds,
+        "compile_s": compile_s,
+        "finite": _all_finite(final),
+    }
+
+
+def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool = True) -> dict:
+    """Mean milliseconds per call of the jitted single-scene step, blocking on every result, and its compile time."""
+    import jax
+    import numpy as np
+
+    from jax2d import step
+
+    state = jax.tree.map(lambda x: x[0], workload.make_batch(1))
+    rng = np.random.default_rng(SEED)
+    total = LOOP_WARMUP + calls
+    # Plain numpy rows, as the server receives actions from the browser each frame.
+    motor = rng.uniform(-1.0, 1.0, (total, state.num_joints)).astype(np.float32)
+    thrust = rng.uniform(0.0, 1.0, (total, state.num_thrusters)).astype(np.float32)
+    params = _array_params(workload.params)
+    config = workload.config
+
+    if cold:
+        jax.clear_caches()
+    stepper = jax.jit(step, static_argnames="config")
+    start = time.perf_counter()
+    state = jax.block_until_ready(stepper(state, params, motor[0], thrust[0], config=config))
+    compile_s = time.perf_counter() - start
+
+    for i in range(1, LOOP_WARMUP):
+        state = jax.block_until_ready(stepper(state, params, motor[i], thrust[i], config=config))
+    start = time.perf_counter()
+    for i in range(LOOP_WARMUP, total):
+        state = jax.block_until_ready(stepper(state, params, motor[i], thrust[i], config=config))
+    seconds = time.perf_counter() - start
+    return {
+        "what": "engine",
+        "size": workload.name,
+        "batch": 1,
+        "mode": "python_loop",
+        "calls": calls,
+        "latency_ms": 1000.0 * seconds / calls,
+        "compile_s": compile_s,
+        "finite": _all_finite(state),
+    }
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, in MB (ru_maxrss is KB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
+
+
+def benchmark(
+    workloads: list[Workload],
+    batches: list[int],
+    steps: int,
+    *,
+    loop_calls: int = LOOP_CALLS,
+    report: Callable[[dict], None] = lambda result: None,
+    cold: bool = True,
+) -> list[dict]:
+    """Measure every workload at every batch size, then its Python-loop latency; end with a peak-RSS summary.
+
+    Each result is passed to `report` as soon as it is measured and all are returned in order. With
+    cold=False compilations may come from the caches (quick tests), so compile_s means little.
+    """
+    import jax
+
+    results = []
+
+    def record(result: dict) -> None:
+        results.append(result)
+        report(result)
+
+    with cold_compiles() if cold else contextlib.nullcontext():
+        for workload in workloads:
+            for batch in batches:
+                record(measure_rollout(workload, batch, steps, cold))
+            record(measure_python_loop(workload, loop_calls, cold))
+    record({
+        "what": "engine",
+        "peak_rss_mb": peak_rss_mb(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "compile_cache": "disabled" if cold else "allowed",
+    })
+    return results
+
+
+# ---------------------------------------------------------------- output
+
+_HEADER = f"{'size':<6}{'batch':>7}  {'mode':<12}{'steps/s':>12}{'ms/call':>10}{'compile s':>11}"
+
+
+def table_row(result: dict) -> str:
+    """One line of the readable table for a result of `benchmark`."""
+    if "peak_rss_mb" in result:
+        return f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']})"
+    warning = "" if result["finite"] else "  NON-FINITE STATE"
+    if result.get("mode") == "python_loop":
+        cells = f"{'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"
+    else:
+        ms_per_call = 1000.0 * result["batch"] / result["steps_per_s"]  # one batched step
+        cells = f"{'scan':<12}{result['steps_per_s']:>12,.0f}{ms_per_call:>10.3f}"
+    return f"{result['size']:<6}{result['batch']:>7}  {cells}{result['compile_s']:>11.2f}{warning}"
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.level:
+        try:
+            workloads = [level_workload(args.level)]
+        except ImportError:
+            print(NO_LEVEL_LOADER, file=sys.stderr)
+            return 2
+        except (OSError, ValueError) as error:  # the loader's LevelError is a ValueError
+            print(f"cannot load level {args.level}: {error}", file=sys.stderr)
+            return 2
+    else:
+        workloads = builtin_workloads(args.sizes)
+
+    if args.json:
+        def report(result: dict) -> None:
+            print(json.dumps(result), flush=True)
+    else:
+        print(f"jax2d engine, {args.steps} steps per rollout; compile times are cold "
+              "(persistent compilation cache disabled, in-memory caches cleared)")
+        print("scan: B scenes under vmap in one jitted lax.scan, steps/s = B * steps / s, ms/call = one batched step")
+        print("python loop: one scene, one jitted step per call, blocking each call; compile s = first call")
+        print(_HEADER, flush=True)
+
+        def report(result: dict) -> None:
+            print(table_row(result), flush=True)
+
+    results = benchmark(workloads, args.batches, args.steps, report=report)
+    return 0 if all(result.get("finite", True) for result in results) else 1

@@ -83,6 +83,8 @@ def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
 def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel) -> Vel:
     """Re-apply every joint's accumulated impulses before solving, joint by joint (a fixed order
     of additions, so batched and single runs agree bitwise)."""
+    if impulse.shape[0] == 0:
+        return vel
 
     def one_joint(j, vel):
         lam = impulse[j]

@@ -34,20 +34,19 @@ def main(out_dir: str = "demo-output", seconds: float = 4.0, resolution: int = 1
     frames_per_second, physics_per_frame = 30, 2
     n_frames = int(seconds * frames_per_second)
 
+    def advance(carry, t):
+        level, params = carry
+        pulse = (t // 20) % 2  # thrusters on for 20 frames, off for 20
+        m, th = expand_actions(level, jnp.ones(4), jnp.full(2, pulse, jnp.float32))
+        for _ in range(physics_per_frame):
+            level = dataclasses.replace(level, sim=jax2d.step(level.sim, params, m, th))
+        return (level, params), render_pixels(level, resolution)
+
+    # One compiled program per size class: levels and params are arguments, not constants.
+    play = jax.jit(lambda level, params: jax.lax.scan(advance, (level, params), jnp.arange(n_frames))[1])
     for path in files:
         lf = load_level(path)
-        level, params = lf.level, lf.params.sim_params()
-
-        def advance(level, t):
-            pulse = (t // 20) % 2
-            motors = jnp.ones(4)
-            thrusters = jnp.full(2, pulse, jnp.float32)
-            m, th = expand_actions(level, motors, thrusters)
-            for _ in range(physics_per_frame):
-                level = dataclasses.replace(level, sim=jax2d.step(level.sim, params, m, th))
-            return level, render_pixels(level, resolution)
-
-        _, frames = jax.jit(lambda lv: jax.lax.scan(advance, lv, jnp.arange(n_frames)))(level)
+        frames = play(lf.level, lf.params.sim_params())
         images = [Image.fromarray(np.asarray(to_uint8(f))) for f in frames]
         target = out / f"{path.stem}.gif"
         images[0].save(target, save_all=True, append_images=images[1:], duration=1000 // frames_per_second, loop=0)

@@ -122,13 +122,14 @@ def grasper(t, sim):
 
 
 def obstacle_course(t, sim):
-    """Body 4 car, 6 hammer rod. Drive to the waiting spot before the hammer; go once the hammer has just swung
-    past the bottom to the right (it then needs half a period to come back)."""
+    """Body 4 car, 6 hammer rod. Creep to a waiting spot outside the hammer's low sweep, then dash as soon as the
+    hammer has swung through the bottom to the right: the car follows it and is past before it swings back.
+    (Driving flat out from the start gets the car hit.)"""
     x = sim.bodies.position[4, 0]
     phi, omega = sim.bodies.angle[6], sim.bodies.angular_velocity[6]
-    hammer_leaving = (phi > 0.35) & (omega > 0.0)
-    approach = x < 1.2
-    go = (x > 1.6) | hammer_leaving
+    hammer_leaving = (phi > -0.1) & (omega > 0.0)
+    approach, waiting = x < 1.2, (x >= 1.2) & (x < 1.6)
+    go = (x >= 1.6) | (waiting & hammer_leaving)
     return drive(jnp.where(go, 1.0, jnp.where(approach, 0.4, 0.0)))
 
 

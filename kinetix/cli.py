@@ -55,8 +55,9 @@ def positive_int(text: str) -> int:
     return value
 
 
-def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", action="store_true", help="print results as JSON instead of a table")
+def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_steps: int, level_help: str) -> None:
+    """The options every `kinetix bench` throughput command shares."""
+    parser.add_argument("--json", action="store_true", help="print results as JSON lines instead of a table")
     parser.add_argument(
         "--sizes",
         type=comma_list(str, allowed={"s", "m", "l"}),
@@ -69,8 +70,19 @@ def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:
         default=[1, 16, 256, 2048],
         help="numbers of parallel scenes, comma-separated (default: 1,16,256,2048)",
     )
-    parser.add_argument("--level", metavar="FILE", help="measure this level file instead of the built-in scenes")
-    parser.add_argument("--steps", type=positive_int, default=200, help="physics steps per measurement (default: 200)")
+    parser.add_argument("--level", metavar="FILE", help=level_help)
+    parser.add_argument("--steps", type=positive_int, default=default_steps,
+                        help=f"{unit} steps per measurement (default: {default_steps})")
+
+
+def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:
+    _bench_arguments(parser, unit="physics", default_steps=200,
+                     level_help="measure this level file instead of the built-in scenes")
+
+
+def _bench_env_arguments(parser: argparse.ArgumentParser) -> None:
+    _bench_arguments(parser, unit="agent", default_steps=100,
+                     level_help="measure this level file (either format) instead of the reference levels")
 
 
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
@@ -98,6 +110,12 @@ COMMANDS: list[Command] = [
         "measure physics steps per second across size classes and batch sizes",
         "kinetix.bench.engine:run",
         _bench_engine_arguments,
+    ),
+    Command(
+        ("bench", "env"),
+        "measure environment steps per second, env.step latency, compile times and the pixel renderer",
+        "kinetix.bench.env:run",
+        _bench_env_arguments,
     ),
     Command(("serve",), "start the browser editor and playground", "kinetix.cli:serve_placeholder", _serve_arguments),
     Command(

@@ -1,0 +1,277 @@
+"""`kinetix bench env`: environment throughput, latency, compile times and pixel-renderer cost.
+
+What is measured, per level (one per size class by default):
+- batched rollout (training): B copies of the environment under vmap, `steps` agent steps inside one
+  jitted lax.scan, with symbolic-entity observations, uniformly random multi-discrete actions and
+  auto-reset; steps_per_s = B * steps / seconds of one run, excluding compilation;
+- Python loop (the interactive path): one `env.step` per call at batch 1, blocking on each result;
+- cold compile seconds of one jitted `env.step` and one jitted `env.reset` at batch 1;
+- the JAX pixel renderer: ms per frame at batch 1 from a Python loop and per frame inside a vmapped batch,
+  at the pixel-observation resolution and at 256 px, with its cold compile seconds.
+
+The default levels are the three public Kinetix files the reference numbers were measured on, read from
+../shared beside the checkout; without it, project levels of the same size classes stand in.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import time
+from pathlib import Path
+
+from kinetix.bench.engine import LOOP_CALLS, LOOP_WARMUP, REPEAT_BELOW_S, SEED, cold_compiles, peak_rss_mb
+
+REPO_DIR = Path(__file__).resolve().parents[2]
+SHARED_LEVELS = REPO_DIR.parent / "shared" / "kinetix-levels"
+# The files of the issue's reference table (kinetix-env 3.0.2 on this machine kind).
+REFERENCE_LEVELS = {"s": "s/h2_one_wheel_car.json", "m": "m/h5_angry_birds.json", "l": "l/h4_cartpole.json"}
+# Stand-ins of the same size classes from levels/ when ../shared is absent.
+PROJECT_LEVELS = {"s": "unicycle.json", "m": "car_right.json", "l": "cartpole.json"}
+PIXEL_RESOLUTIONS = (64, 256)
+PIXEL_BATCH = 64
+
+
+def default_level_paths(sizes: list[str]) -> list[Path]:
+    """The reference level of each size class, or the project's stand-in when ../shared is missing."""
+    paths = []
+    for size in sizes:
+        shared = SHARED_LEVELS / REFERENCE_LEVELS[size]
+        paths.append(shared if shared.is_file() else REPO_DIR / "levels" / PROJECT_LEVELS[size])
+    return paths
+
+
+def _make_env(level_file):
+    from kinetix.env import EnvConfig, EnvParams, make_env
+
+    config = EnvConfig(size=level_file.size, observation="entity", action="multi_discrete",
+                       frame_skip=level_file.params.frame_skip)
+    return make_env(config, level_file), EnvParams.from_level_params(level_file.params)
+
+
+def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = True) -> dict:
+    """Agent steps per second of `batch` environments stepped `steps` times in one jitted scan."""
+    import jax
+
+    from kinetix.actions import sample_random_action
+
+    env, params = _make_env(level_file)
+    action_type = env.config.action
+
+    def rollout(key, params):
+        keys = jax.random.split(key, batch)
+        _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+
+        def one_step(carry, _):
+            states, key = carry
+            key, act_key, step_key = jax.random.split(key, 3)
+            actions = jax.vmap(lambda k: sample_random_action(k, action_type))(jax.random.split(act_key, batch))
+            obs, states, reward, terminated, truncated, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(step_key, batch), states, actions, params)
+            return (states, key), (reward.sum(), (terminated | truncated).sum())
+
+        (states, _), (rewards, ends) = jax.lax.scan(one_step, (states, key), None, length=steps)
+        return states, rewards.sum(), ends.sum()
+
+    key = jax.random.PRNGKey(SEED)
+    if cold:
+        jax.clear_caches()
+    start = time.perf_counter()
+    compiled = jax.jit(rollout).lower(key, params).compile()
+    compile_s = time.perf_counter() - start
+
+    start = time.perf_counter()
+    result = jax.block_until_ready(compiled(key, params))
+    seconds = time.perf_counter() - start
+    if seconds < REPEAT_BELOW_S:  # a short run is skewed by first-run allocations: time a second one
+        start = time.perf_counter()
+        result = jax.block_until_ready(compiled(key, params))
+        seconds = time.perf_counter() - start
+    states, _, episodes_ended = result
+    return {
+        "what": "env",
+        "size": level_file.size.name,
+        "level": name,
+        "batch": batch,
+        "steps": steps,
+        "steps_per_s": batch * steps / seconds,
+        "seconds": seconds,
+        "compile_s": compile_s,
+        "episodes_ended": int(episodes_ended),
+        "finite": _finite(states),
+    }
+
+
+def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bool = True) -> dict:
+    """Mean ms per `env.step` call at batch 1 from Python, and cold compile seconds of step and reset."""
+    import jax
+    import numpy as np
+
+    from kinetix.actions import sample_random_action
+
+    env, params = _make_env(level_file)
+    total = LOOP_WARMUP + calls
+    actions = np.asarray(jax.vmap(lambda k: sample_random_action(k, env.config.action))(
+        jax.random.split(jax.random.PRNGKey(SEED), total)))
+    keys = jax.random.split(jax.random.PRNGKey(SEED + 1), total)
+
+    if cold:
+        jax.clear_caches()
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    start = time.perf_counter()
+    obs, state = jax.block_until_ready(reset(keys[0], params))
+    reset_compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    out = jax.block_until_ready(step(keys[0], state, actions[0], params))
+    step_compile_s = time.perf_counter() - start
+
+    state = out[1]
+    for i in range(1, LOOP_WARMUP):
+        state = jax.block_until_ready(step(keys[i], state, actions[i], params))[1]
+    start = time.perf_counter()
+    for i in range(LOOP_WARMUP, total):
+        state = jax.block_until_ready(step(keys[i], state, actions[i], params))[1]
+    seconds = time.perf_counter() - start
+    return {
+        "what": "env",
+        "size": level_file.size.name,
+        "level": name,
+        "batch": 1,
+        "mode": "python_loop",
+        "calls": calls,
+        "latency_ms": 1000.0 * seconds / calls,
+        "compile_s": step_compile_s,
+        "step_compile_s": step_compile_s,
+        "reset_compile_s": reset_compile_s,
+        "finite": _finite(state),
+    }
+
+
+def measure_renderer(level_file, name: str, resolution: int, calls: int = 100, cold: bool = True) -> dict:
+    """The JAX pixel renderer: ms per frame at batch 1 (Python loop) and inside a vmapped batch."""
+    import jax
+    import jax.numpy as jnp
+
+    from kinetix.render import render_pixels
+
+    level = level_file.level
+    single = jax.jit(lambda lv: render_pixels(lv, resolution))
+    batched = jax.jit(jax.vmap(lambda lv: render_pixels(lv, resolution)))
+    stack = jax.tree.map(lambda x: jnp.stack([x] * PIXEL_BATCH), level)
+
+    if cold:
+        jax.clear_caches()
+    start = time.perf_counter()
+    jax.block_until_ready(single(level))
+    compile_s = time.perf_counter() - start
+    for _ in range(5):
+        jax.block_until_ready(single(level))
+    start = time.perf_counter()
+    for _ in range(calls):
+        jax.block_until_ready(single(level))
+    loop_ms = 1000.0 * (time.perf_counter() - start) / calls
+
+    jax.block_until_ready(batched(stack))
+    start = time.perf_counter()
+    repeats = 3
+    for _ in range(repeats):
+        jax.block_until_ready(batched(stack))
+    batched_ms = 1000.0 * (time.perf_counter() - start) / (repeats * PIXEL_BATCH)
+    return {
+        "what": "env",
+        "size": level_file.size.name,
+        "level": name,
+        "mode": "pixels",
+        "resolution": resolution,
+        "ms_per_frame": loop_ms,
+        "ms_per_frame_batched": batched_ms,
+        "render_batch": PIXEL_BATCH,
+        "compile_s": compile_s,
+    }
+
+
+def _finite(tree) -> bool:
+    import jax
+    import numpy as np
+
+    arrays = [np.asarray(leaf) for leaf in jax.tree.leaves(tree)]
+    return all(bool(np.isfinite(a).all()) for a in arrays if np.issubdtype(a.dtype, np.floating))
+
+
+def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: int = LOOP_CALLS,
+              pixel_resolutions=PIXEL_RESOLUTIONS, report=lambda result: None, cold: bool = True) -> list[dict]:
+    """Measure each (name, LevelFile) at every batch size, its Python-loop latency and the renderer.
+
+    Results go to `report` as they are measured and are returned in order, ending with a peak-RSS line.
+    """
+    import jax
+
+    results = []
+
+    def record(result: dict) -> None:
+        results.append(result)
+        report(result)
+
+    with cold_compiles() if cold else contextlib.nullcontext():
+        for name, level_file in level_files:
+            for batch in batches:
+                record(measure_rollout(level_file, name, batch, steps, cold))
+            record(measure_python_loop(level_file, name, loop_calls, cold))
+            for resolution in pixel_resolutions:
+                record(measure_renderer(level_file, name, resolution, cold=cold))
+    record({"what": "env", "peak_rss_mb": peak_rss_mb(), "jax": jax.__version__, "backend": jax.default_backend(),
+            "compile_cache": "disabled" if cold else "allowed"})
+    return results
+
+
+# ---------------------------------------------------------------- output
+
+_HEADER = f"{'size':<5}{'level':<24}{'batch':>6}  {'mode':<12}{'steps/s':>12}{'ms/call':>10}{'compile s':>11}"
+
+
+def table_row(result: dict) -> str:
+    """One line of the readable table for a result of `benchmark`."""
+    if "peak_rss_mb" in result:
+        return f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']})"
+    head = f"{result['size']:<5}{result['level'][:23]:<24}"
+    if result.get("mode") == "pixels":
+        return (f"{head}{'':>6}  {'pixels ' + str(result['resolution']):<12}{'':>12}{result['ms_per_frame']:>10.3f}"
+                f"{result['compile_s']:>11.2f}  ({result['ms_per_frame_batched']:.3f} ms/frame in a batch of "
+                f"{result['render_batch']})")
+    warning = "" if result["finite"] else "  NON-FINITE STATE"
+    if result.get("mode") == "python_loop":
+        return (f"{head}{1:>6}  {'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"
+                f"{result['step_compile_s']:>11.2f}  (reset compile {result['reset_compile_s']:.2f} s){warning}")
+    ms_per_call = 1000.0 * result["batch"] / result["steps_per_s"]
+    return (f"{head}{result['batch']:>6}  {'scan':<12}{result['steps_per_s']:>12,.0f}{ms_per_call:>10.3f}"
+            f"{result['compile_s']:>11.2f}{warning}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from kinetix.level import LevelError
+    from kinetix.levels import load_level
+
+    paths = [Path(args.level)] if args.level else default_level_paths(args.sizes)
+    level_files = []
+    for path in paths:
+        try:
+            level_files.append((path.stem, load_level(path)))
+        except LevelError as error:
+            print(f"cannot load level {path}: {error}", file=sys.stderr)
+            return 2
+
+    if args.json:
+        def report(result: dict) -> None:
+            print(json.dumps(result), flush=True)
+    else:
+        print(f"kinetix env, {args.steps} agent steps per rollout (symbolic-entity observations, random "
+              "multi-discrete actions, auto-reset); compile times are cold")
+        print(_HEADER, flush=True)
+
+        def report(result: dict) -> None:
+            print(table_row(result), flush=True)
+
+    results = benchmark(level_files, args.batches, args.steps, report=report)
+    return 0 if all(result.get("finite", True) for result in results) else 1

@@ -55,6 +55,7 @@ class EditorPanel:
     def _button(self, label: str, action: Callable[[], object], hint: str | None = None, **kw):
         button = self.gui.add_button(label, hint=hint, **kw)
         button.on_click(lambda _: self._act(action))
+        self.buttons[label] = button
         return button
 
     def _field(self, handle, name: str, convert=lambda v: v):
@@ -65,6 +66,7 @@ class EditorPanel:
 
     def _build(self) -> None:
         gui, ed = self.gui, self.editor
+        self.buttons: dict[str, viser.GuiButtonHandle] = {}
         self.tools = gui.add_button_group("Tool", [TOOL_LABELS[t] for t in TOOLS])
         self.tools.on_click(lambda event: self._act(lambda: ed.set_tool(TOOL_OF_LABEL[event.target.value])))
         self.tool_line = gui.add_markdown("")

@@ -12,7 +12,7 @@ import math
 
 from kinetix.formats import BodySpec, JointSpec, LevelSpec, ThrusterSpec
 from kinetix.level import NUM_WALLS
-from server.editor.geometry import Point, bounds, contains, rotate, to_world
+from server.editor.geometry import Point, bounds, contains, rotate, to_local, to_world
 
 Item = tuple[str, int]
 MARKER_RADIUS = 0.08  # m: how close a click must be to a joint or thruster marker
@@ -104,6 +104,16 @@ def move(spec: LevelSpec, bodies: set[int], dx: float, dy: float) -> None:
     for i in bodies:
         b = spec.bodies[i]
         b.position = (b.position[0] + dx, b.position[1] + dy)
+    reattach(spec, bodies)
+
+
+def reattach(spec: LevelSpec, moved: set[int]) -> None:
+    """Keep joints from moved bodies to bodies that stayed (walls) closed: the staying side's anchor follows."""
+    for joint in spec.joints:
+        if joint.a in moved and joint.b not in moved:
+            joint.anchor_b = to_local(spec.bodies[joint.b], to_world(spec.bodies[joint.a], joint.anchor_a))
+        elif joint.b in moved and joint.a not in moved:
+            joint.anchor_a = to_local(spec.bodies[joint.a], to_world(spec.bodies[joint.b], joint.anchor_b))
 
 
 def pivot(spec: LevelSpec, bodies: set[int]) -> Point:
@@ -119,6 +129,10 @@ def rotate_bodies(spec: LevelSpec, bodies: set[int], radians: float, about: Poin
         rx, ry = rotate((b.position[0] - about[0], b.position[1] - about[1]), radians)
         b.position = (about[0] + rx, about[1] + ry)
         b.angle = b.angle + radians
+    for joint in spec.joints:  # a joint to a body that did not turn: its reference angle turns with the rest
+        if (joint.a in bodies) != (joint.b in bodies) and joint.ref_angle is not None:
+            joint.ref_angle += radians if joint.b in bodies else -radians
+    reattach(spec, bodies)
 
 
 def scale_bodies(spec: LevelSpec, bodies: set[int], factor: float, about: Point) -> None:
@@ -136,6 +150,12 @@ def scale_bodies(spec: LevelSpec, bodies: set[int], factor: float, about: Point)
     for thruster in spec.thrusters:
         if thruster.body in bodies:
             thruster.anchor = (thruster.anchor[0] * factor, thruster.anchor[1] * factor)
+    for joint in spec.joints:
+        if joint.a in bodies and joint.b not in bodies:
+            joint.anchor_a = (joint.anchor_a[0] * factor, joint.anchor_a[1] * factor)
+        elif joint.b in bodies and joint.a not in bodies:
+            joint.anchor_b = (joint.anchor_b[0] * factor, joint.anchor_b[1] * factor)
+    reattach(spec, bodies)
 
 
 def renumber(spec: LevelSpec) -> None:

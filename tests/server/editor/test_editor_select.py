@@ -187,3 +187,23 @@ def test_selection_overlay(ed):
     assert kinds == ["circle", "point", "arrow"]
     ed.key("Escape")
     assert ed.selection == [] and ed.overlay().selection == []
+
+
+def test_moving_a_body_pinned_to_a_wall_keeps_the_joint_closed(ed):
+    from server.editor.geometry import to_world
+    ed.set_tool("revolute")
+    ed.set_tool("circle")
+    drag(ed, (2.5, 0.5), (2.5, 0.8))
+    ed.set_tool("revolute")
+    ed.click(2.5, 0.35)
+    ed.set_tool("select")
+    ed.selection = [("body", 7)]
+    drag(ed, (2.5, 0.6), (3.0, 1.6))
+    joint = ed.spec.joints[-1]
+    assert ed.spec.bodies[0].position == (2.5, -4.8)  # the floor stays
+    assert to_world(ed.spec.bodies[0], joint.anchor_a) == pytest.approx(to_world(ed.spec.bodies[7], joint.anchor_b))
+    ed.rotate_selection(45)
+    ed.scale_selection(1.5)
+    joint = ed.spec.joints[-1]
+    assert to_world(ed.spec.bodies[0], joint.anchor_a) == pytest.approx(to_world(ed.spec.bodies[7], joint.anchor_b))
+    assert joint.ref_angle == pytest.approx(ed.spec.bodies[7].angle - ed.spec.bodies[0].angle)

@@ -80,6 +80,14 @@ def _mutator(n: int):
     return jax.jit(lambda key, level: mutate(key, level, n))
 
 
+def warm_up(size: str | SizeClass = "m") -> None:
+    """Compile the random-level and shake-it-up programs of this size class now (tens of seconds without the
+    persistent compile cache), e.g. on a background thread at server start, so the first button press is quick."""
+    size = size_class(size)
+    level = _sampler(size)(jax.random.PRNGKey(0))
+    jax.block_until_ready(_mutator(3)(jax.random.PRNGKey(0), level))
+
+
 def random_level(seed: int, size: str | SizeClass) -> LevelSpec:
     size = size_class(size)
     level = _sampler(size)(jax.random.PRNGKey(seed))
@@ -87,6 +95,7 @@ def random_level(seed: int, size: str | SizeClass) -> LevelSpec:
 
 
 def shaken(file: LevelFile, seed: int, n: int = 3) -> LevelSpec:
+    """The level after `n` random mutators (kinetix.mutate), seeded; edits that would break it are skipped."""
     level = _mutator(n)(jax.random.PRNGKey(seed), file.level)
     out = LevelFile(jax.device_get(level), file.params, file.size, file.name)
     return normalised(out)
@@ -100,4 +109,5 @@ def fits(spec: LevelSpec, size: SizeClass) -> LevelFile:
         raise EditorError(str(error)) from None
 
 
-__all__ = ["EditorError", "parse", "export", "new_level", "random_level", "shaken", "fits", "smallest_size"]
+__all__ = ["EditorError", "parse", "export", "new_level", "random_level", "shaken", "fits", "smallest_size",
+           "warm_up"]

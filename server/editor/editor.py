@@ -85,6 +85,10 @@ class Editor:
         self._bump()
         return message
 
+    def notify(self, message: str | None) -> str | None:
+        """Show a message (or clear it with None) in the overlay; bumps the revision."""
+        return self._say(message)
+
     def _snapshot(self) -> Snapshot:
         return Snapshot(self.spec, self.size)
 

@@ -48,7 +48,7 @@ class EditorPanel:
             try:
                 action()
             except EditorError as error:
-                self.editor._say(str(error))
+                self.editor.notify(str(error))
             self.refresh()
         self.on_change()
 
@@ -102,6 +102,8 @@ class EditorPanel:
             self.motor_power = self._field(gui.add_number("Motor power", 1.0, min=0.0, step=0.1), "motor_power")
             self.motor_binding = self._field(gui.add_dropdown("Motor keys", MOTOR_BINDINGS), "motor_binding",
                                              MOTOR_BINDINGS.index)
+            self.motor_auto = self._field(gui.add_checkbox("Always driven", False,
+                                                           hint="the motor runs at +1 whatever the keys"), "motor_auto")
             self.limits_on = self._field(gui.add_checkbox("Angle limits", False), "limits_on")
             self.limit_min = self._field(gui.add_number("Limit min (°)", -45.0, step=5.0), "limit_min")
             self.limit_max = self._field(gui.add_number("Limit max (°)", 45.0, step=5.0), "limit_max")
@@ -113,7 +115,7 @@ class EditorPanel:
                                                 "thruster_binding", THRUSTER_BINDINGS.index)
         self.body_widgets = (self.role, self.fixed, self.density, self.friction, self.restitution, self.collision)
         self.joint_widgets = (self.joint_type, self.motor_on, self.motor_speed, self.motor_power, self.motor_binding,
-                              self.limits_on, self.limit_min, self.limit_max)
+                              self.motor_auto, self.limits_on, self.limit_min, self.limit_max)
         self.thruster_widgets = (self.thruster_power, self.thruster_direction, self.thruster_binding)
 
         with gui.add_folder("Level"):
@@ -148,7 +150,7 @@ class EditorPanel:
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
             raise EditorError(f"grid must be >= 0, got {value!r}")
         self.editor.grid = float(value)
-        self.editor._bump()
+        self.editor.notify(None)
 
     # ------------------------------------------------------------ files
 
@@ -160,7 +162,7 @@ class EditorPanel:
             try:
                 text = self.editor.export(format)
             except EditorError as error:
-                self.editor._say(str(error))
+                self.editor.notify(str(error))
                 self.refresh()
                 text = None
         if text is None:
@@ -223,10 +225,12 @@ class EditorPanel:
             self.motor_speed.value = j["motor_speed"]
             self.motor_power.value = j["motor_power"]
             self.motor_binding.value = MOTOR_BINDINGS[j["motor_binding"]]
+            self.motor_auto.value = j["motor_auto"]
             self.limits_on.value = j["limits_on"]
             self.limit_min.value = round(j["limit_min"], 3)
             self.limit_max.value = round(j["limit_max"], 3)
-            for w in (self.motor_on, self.motor_speed, self.motor_power, self.motor_binding, self.limits_on,
+            for w in (self.motor_on, self.motor_speed, self.motor_power, self.motor_binding, self.motor_auto,
+                      self.limits_on,
                       self.limit_min, self.limit_max):
                 w.disabled = j["joint_type"] == "fixed"
         if thrusters:

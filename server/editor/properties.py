@@ -12,8 +12,8 @@ from kinetix.formats import LevelSpec
 from kinetix.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES
 
 BODY_FIELDS = ("role", "fixed", "density", "friction", "restitution", "collision_mode")
-JOINT_FIELDS = ("joint_type", "motor_on", "motor_speed", "motor_power", "motor_binding", "limits_on", "limit_min",
-                "limit_max")
+JOINT_FIELDS = ("joint_type", "motor_on", "motor_speed", "motor_power", "motor_binding", "motor_auto", "limits_on",
+                "limit_min", "limit_max")
 THRUSTER_FIELDS = ("thruster_power", "thruster_direction", "thruster_binding")
 COLLISION_MODES = ("only walls", "normal", "everything")  # jax2d COLLIDE_ONLY_ALL, COLLIDE_NORMAL, COLLIDE_ALL
 
@@ -29,7 +29,8 @@ def joint_fields(spec: LevelSpec, k: int) -> dict:
     low, high = j.limits if j.limits is not None else (-math.pi / 4, math.pi / 4)
     return dict(index=k, a=j.a, b=j.b, joint_type="fixed" if j.fixed else "revolute", motor_on=j.motor_on,
                 motor_speed=j.motor_speed, motor_power=j.motor_power, motor_binding=j.motor_binding,
-                limits_on=j.limits is not None, limit_min=math.degrees(low), limit_max=math.degrees(high))
+                motor_auto=j.motor_auto, limits_on=j.limits is not None, limit_min=math.degrees(low),
+                limit_max=math.degrees(high))
 
 
 def thruster_fields(spec: LevelSpec, k: int) -> dict:
@@ -100,6 +101,8 @@ def apply(spec: LevelSpec, bodies: list[int], joints: list[int], thrusters: list
             j.motor_power = _number("motor power", values["motor_power"], low=0.0)
         if "motor_binding" in values:
             j.motor_binding = _choice("motor binding", values["motor_binding"], NUM_MOTOR_BINDINGS)
+        if "motor_auto" in values:
+            j.motor_auto = bool(values["motor_auto"])
         low, high = j.limits if j.limits is not None else (-math.pi / 4, math.pi / 4)
         on = bool(values.get("limits_on", j.limits is not None))
         if "limit_min" in values:

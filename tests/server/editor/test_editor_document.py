@@ -55,6 +55,7 @@ def test_body_properties(ed, field, value, expected, shown):
     ("motor_speed", -2.0, lambda j: j.motor_speed == -2.0),
     ("motor_power", 3.0, lambda j: j.motor_power == 3.0),
     ("motor_binding", 3, lambda j: j.motor_binding == 3),
+    ("motor_auto", True, lambda j: j.motor_auto),
     ("limits_on", True, lambda j: j.limits == pytest.approx((-math.pi / 4, math.pi / 4))),
 ])
 def test_joint_properties(ed, field, value, check):

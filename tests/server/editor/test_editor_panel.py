@@ -78,11 +78,13 @@ def test_joint_and_thruster_widgets(setup):
     panel.motor_speed.value = 2.0
     panel.motor_power.value = 3.0
     panel.motor_binding.value = "3: A/D"
+    panel.motor_auto.value = True
     panel.limits_on.value = True
     panel.limit_min.value = -10.0
     panel.limit_max.value = 20.0
     joint = editor.spec.joints[0]
     assert (joint.motor_on, joint.motor_speed, joint.motor_power, joint.motor_binding) == (True, 2.0, 3.0, 3)
+    assert joint.motor_auto
     assert joint.limits == pytest.approx((-0.17453292, 0.34906585))
     panel.joint_type.value = "fixed"
     assert editor.spec.joints[0].fixed and panel.motor_on.disabled

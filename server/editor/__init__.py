@@ -11,6 +11,8 @@ Modules, one concept each:
 - panel.py: `EditorPanel`, the edit-mode viser GUI.
 
 Decisions:
+- Select tool: drag moves, Alt+drag rotates, Ctrl+drag resizes (each one undo step); R / Shift+R turn 15°,
+  + / - resize by 10%.
 - The 4 standard walls cannot be selected, moved or deleted (they are what the Kinetix format and the
   generators expect in polygon slots 0-3); they can be the other end of a joint, to pin a body to the world.
 - Pointer input: `pointer_down` / `pointer_move` / `pointer_up` describe one gesture; a press and release

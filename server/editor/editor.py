@@ -206,7 +206,7 @@ class Editor:
                      meta: bool = False) -> str | None:
         raw = (x, y)
         if self.tool == "select":
-            self._press = {"kind": "press", "start": raw, "shift": shift, "moved": False}
+            self._press = {"kind": "press", "start": raw, "shift": shift, "alt": alt, "ctrl": ctrl or meta}
         elif self.tool in ("circle", "rectangle"):
             self._press = {"kind": self.tool, "start": self._snap(raw), "end": None, "raw": raw}
         elif self.tool == "thruster":
@@ -232,6 +232,8 @@ class Editor:
             press = self._press
         if press["kind"] == "move":
             self._drag_move(press, p)
+        elif press["kind"] in ("rotate", "scale"):
+            self._drag_turn(press, p)
         elif press["kind"] == "box":
             press["end"] = p
         elif press["kind"] in ("circle", "rectangle", "thruster"):
@@ -249,6 +251,11 @@ class Editor:
         if any(item in self.selection for item in under):
             moving = sel.assembly(self.spec, sel.selected_bodies(self.spec, self.selection))
             only_thrusters = not moving and any(k == "thruster" for k, _ in self.selection)
+            if moving and (press["alt"] or press["ctrl"]):
+                self._press = {"kind": "rotate" if press["alt"] else "scale", "start": start, "bodies": moving,
+                               "before": self._snapshot(), "origin": copy.deepcopy(self.spec),
+                               "pivot": sel.pivot(self.spec, moving)}
+                return
             if moving or only_thrusters:
                 grab = self.spec.bodies[min(moving)].position if moving else start
                 self._press = {"kind": "move", "start": start, "bodies": moving, "before": self._snapshot(),
@@ -273,6 +280,21 @@ class Editor:
                     t.anchor = to_local(body, (ox + dx, oy + dy))
         self.spec = spec  # live, uncommitted: pointer_up validates it and records one undo step
 
+    def _drag_turn(self, press: dict, p: Point) -> None:
+        """Alt+drag turns the selection's assembly about its centre (15 degree steps when snapping);
+        Ctrl+drag resizes it by the ratio of distances from the centre."""
+        (cx, cy), (sx, sy) = press["pivot"], press["start"]
+        spec = copy.deepcopy(press["origin"])
+        if press["kind"] == "rotate":
+            turn = math.atan2(p[1] - cy, p[0] - cx) - math.atan2(sy - cy, sx - cx)
+            if self.snapping:
+                turn = math.radians(round(math.degrees(turn) / 15.0) * 15.0)
+            sel.rotate_bodies(spec, press["bodies"], turn, press["pivot"])
+        else:
+            factor = math.dist(p, press["pivot"]) / max(math.dist(press["start"], press["pivot"]), 1e-6)
+            sel.scale_bodies(spec, press["bodies"], max(factor, 0.05), press["pivot"])
+        self.spec = spec
+
     def pointer_up(self, x: float, y: float, **mods) -> str | None:
         press, self._press = self._press, None
         if press is None:
@@ -281,8 +303,11 @@ class Editor:
         kind = press["kind"]
         if kind in ("press", "click"):
             return self.click(x, y, **mods)
-        if kind == "move":
-            self._drag_move(press, p)
+        if kind in ("move", "rotate", "scale"):
+            if kind == "move":
+                self._drag_move(press, p)
+            else:
+                self._drag_turn(press, p)
             moved, self.spec = self.spec, press["origin"]
             if moved == press["origin"]:
                 self._bump()

@@ -80,9 +80,9 @@ class EditorPanel:
             self._button("Duplicate", ed.duplicate_selection, "Ctrl+D")
             self._button("Copy", ed.copy, "Ctrl+C")
             self._button("Paste", ed.paste, "Ctrl+V")
-            self._button("Rotate +15°", lambda: ed.rotate_selection(15.0), "R")
+            self._button("Rotate +15°", lambda: ed.rotate_selection(15.0), "R, or Alt+drag")
             self._button("Rotate -15°", lambda: ed.rotate_selection(-15.0), "Shift+R")
-            self._button("Grow", lambda: ed.scale_selection(1.1), "+")
+            self._button("Grow", lambda: ed.scale_selection(1.1), "+, or Ctrl+drag")
             self._button("Shrink", lambda: ed.scale_selection(1 / 1.1), "-")
             self._button("Finish polygon", ed.finish_polygon, "Enter, or click the first vertex")
 

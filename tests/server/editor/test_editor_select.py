@@ -207,3 +207,17 @@ def test_moving_a_body_pinned_to_a_wall_keeps_the_joint_closed(ed):
     joint = ed.spec.joints[-1]
     assert to_world(ed.spec.bodies[0], joint.anchor_a) == pytest.approx(to_world(ed.spec.bodies[7], joint.anchor_b))
     assert joint.ref_angle == pytest.approx(ed.spec.bodies[7].angle - ed.spec.bodies[0].angle)
+
+
+def test_alt_drag_rotates_and_ctrl_drag_resizes(ed):
+    ed.selection = [("body", 6)]
+    centre = ed.spec.bodies[6].position
+    drag(ed, (3.7, 3.5), (3.5, 3.72), alt=True)  # a quarter turn about the circle's centre
+    assert ed.spec.bodies[6].angle == pytest.approx(math.pi / 2, abs=1e-6)
+    assert ed.spec.bodies[6].position == pytest.approx(centre)
+    steps = len(ed.history.undo_stack)
+    drag(ed, (3.7, 3.5), (3.9, 3.5), ctrl=True)  # twice as far from the centre: twice the size
+    assert ed.spec.bodies[6].radius == pytest.approx(0.6)
+    assert len(ed.history.undo_stack) == steps + 1
+    ed.undo()
+    assert ed.spec.bodies[6].radius == pytest.approx(0.3)

@@ -596,6 +596,9 @@ class Editor:
             self.duplicate_selection()
         elif command:
             return False
+        elif key in ("Delete", "Backspace") and self._points:
+            self._points.pop()  # while drawing a polygon: take back the last vertex
+            self._bump()
         elif key in ("Delete", "Backspace"):
             self.delete_selection()
         elif key == "Escape":

@@ -189,3 +189,22 @@ def test_revision_bumps(ed):
     r = ed.revision
     ed.click(1.0, 1.0)
     assert ed.revision > r
+
+
+def test_polygon_backspace_and_escape(ed):
+    ed.set_tool("polygon")
+    for p in [(1.0, 1.0), (2.0, 1.0), (1.7, 1.2), (2.0, 2.0)]:
+        ed.click(*p)
+    assert ed.key("Backspace")  # takes back (2, 2)
+    assert ed.key("Backspace")  # and (1.7, 1.2), the dent
+    ed.click(2.0, 2.0)
+    ed.click(1.0, 2.0)
+    ed.key("Enter")
+    assert len(ed.spec.bodies) == 5 and len(ed.spec.bodies[-1].vertices) == 4
+    ed.click(3.0, 3.0)
+    ed.key("Escape")
+    assert ed.overlay().preview == [] or all(s["kind"] == "point" for s in ed.overlay().preview)
+    ed.click(3.0, 3.0)
+    ed.click(4.0, 3.0)
+    assert ed.key("Enter") and len(ed.spec.bodies) == 5  # only 2 vertices since Escape: refused
+    assert "at least 3" in ed.overlay().message

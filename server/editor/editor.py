@@ -17,7 +17,7 @@ from kinetix.formats import BodySpec, JointSpec, LevelSpec, ThrusterSpec, build
 from kinetix.level import LevelError, LevelFile, SizeClass, size_class
 from server.editor import levelio, properties
 from server.editor import selection as sel
-from server.editor.geometry import Point, convexity_error, outline, polygon_body, rotate, to_local
+from server.editor.geometry import Point, contains, convexity_error, outline, polygon_body, rotate, to_local
 from server.editor.history import History, Snapshot
 from server.editor.levelio import EditorError
 from server.editor.snapping import snap
@@ -194,6 +194,11 @@ class Editor:
         q, self._guides, self._snap_point = snap(p, bodies, self.grid)
         return q
 
+    def _snap_inside(self, p: Point, body: int) -> Point:
+        """p snapped, unless snapping would take it off the body."""
+        q = self._snap(p)
+        return q if contains(self.spec.bodies[body], q) else p
+
     def hover(self, x: float, y: float) -> None:
         if self.tool == "select":
             return
@@ -213,7 +218,8 @@ class Editor:
             bodies = sel.bodies_at(self.spec, raw, include_walls=False)
             if not bodies:
                 return self._say("press on a body to place a thruster, then drag to aim it")
-            self._press = {"kind": "thruster", "start": self._snap(raw), "body": bodies[0], "end": None, "raw": raw}
+            at = self._snap_inside(raw, bodies[0])
+            self._press = {"kind": "thruster", "start": at, "body": bodies[0], "end": None, "raw": raw}
         else:  # polygons and joints act on clicks
             self._press = {"kind": "click", "raw": raw}
         self._bump()
@@ -339,11 +345,12 @@ class Editor:
         if self.tool in ("triangle", "polygon"):
             return self._add_vertex(q)
         if self.tool in ("revolute", "fixed"):
-            return self._add_joint(p, fixed=self.tool == "fixed")
+            # The snapped point (e.g. a wheel's centre) if it still lies on two bodies, else where clicked.
+            return self._add_joint(q if len(sel.bodies_at(self.spec, q)) >= 2 else p, fixed=self.tool == "fixed")
         bodies = sel.bodies_at(self.spec, p, include_walls=False)
         if not bodies:
             return self._say("click on a body to place a thruster")
-        return self._add_thruster(bodies[0], q, None)
+        return self._add_thruster(bodies[0], self._snap_inside(p, bodies[0]), None)
 
     def _click_select(self, p: Point, shift: bool) -> str | None:
         under = sel.hits(self.spec, p)

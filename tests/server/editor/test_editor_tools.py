@@ -208,3 +208,18 @@ def test_polygon_backspace_and_escape(ed):
     ed.click(4.0, 3.0)
     assert ed.key("Enter") and len(ed.spec.bodies) == 5  # only 2 vertices since Escape: refused
     assert "at least 3" in ed.overlay().message
+
+
+def test_joint_and_thruster_snap_only_where_it_stays_on_the_bodies(ed):
+    make_pair(ed)
+    ed.snapping = True
+    ed.grid = 0.5
+    ed.set_tool("revolute")
+    ed.click(1.97, 1.22)  # near the circle's centre (2, 1.2), which lies on both bodies
+    assert ed.spec.joints[0].anchor_b == pytest.approx((0.0, 0.0))
+    ed.set_tool("thruster")
+    # x to the grid (1.0), y aligned with the centres (1.2): the left edge's midpoint, still on the body
+    ed.click(1.18, 1.13)
+    assert ed.spec.thrusters[0].anchor == pytest.approx((-0.5, 0.0))
+    ed.click(1.3, 1.3)  # to the grid point (1.5, 1.5): off the body, so not snapped
+    assert ed.spec.thrusters[1].anchor == pytest.approx((-0.2, 0.1))

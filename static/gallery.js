@@ -1,4 +1,4 @@
-// The gallery page: cards from GET /api/levels. User text is only ever set with textContent (never innerHTML),
+// The gallery page: cards from GET /api/levels. User text is only ever set with textContent (never parsed as HTML),
 // so names like <img onerror=...> show as text. The author/voter token lives in localStorage.
 "use strict";
 const TOKEN_KEY = "kinetix.author_token";

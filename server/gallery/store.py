@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import (
+    BigInteger,
     Boolean,
     Column,
     Connection,
@@ -99,18 +100,18 @@ class Forbidden(StoreError):
 _meta = MetaData()
 meta_t = Table("meta", _meta, Column("key", String(64), primary_key=True), Column("value", Text))
 authors_t = Table("authors", _meta, Column("id", String(16), primary_key=True), Column("token_hash", String(64)),
-                  Column("created", Integer))
+                  Column("created", BigInteger))
 levels_t = Table(
     "levels", _meta, Column("id", String(32), primary_key=True), Column("name", String(100)),
-    Column("description", Text), Column("author_id", String(16)), Column("created", Integer),
-    Column("updated", Integer), Column("parent_id", String(32)), Column("size", String(8)),
+    Column("description", Text), Column("author_id", String(16)), Column("created", BigInteger),
+    Column("updated", BigInteger), Column("parent_id", String(32)), Column("size", String(8)),
     Column("level_json", Text), Column("thumbnail", LargeBinary))
 tags_t = Table("level_tags", _meta, Column("level_id", String(32)), Column("tag", String(32)))
 votes_t = Table("votes", _meta, Column("level_id", String(32)), Column("author_id", String(16)),
-                Column("value", SmallInteger), Column("created", Integer))
-plays_t = Table("plays", _meta, Column("id", Integer, primary_key=True), Column("level_id", String(32)),
+                Column("value", SmallInteger), Column("created", BigInteger))
+plays_t = Table("plays", _meta, Column("id", BigInteger, primary_key=True), Column("level_id", String(32)),
                 Column("kind", String(8)), Column("solved", Boolean), Column("steps", Integer),
-                Column("seconds", Float), Column("created", Integer), Column("recording", LargeBinary),
+                Column("seconds", Float), Column("created", BigInteger), Column("recording", LargeBinary),
                 Column("recording_path", String(255)))
 
 

@@ -45,10 +45,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", default=None, help="data directory (default: env KINETIX_DATA, else XDG)")
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8081)
+    parser.add_argument("--no-seed", action="store_true", help="do not seed an empty gallery from levels/")
     args = parser.parse_args(argv)
     import uvicorn
 
-    store = open_store(args.db, data_dir=args.data)
+    store = open_store(args.db, data_dir=args.data, **({"seed_dir": None} if args.no_seed else {}))
     uvicorn.run(create_gallery_app(store, os.environ.get("KINETIX_ADMIN_TOKEN")), host=args.host, port=args.port,
                 log_level="warning")
 

@@ -3,6 +3,7 @@ a writer process killed with SIGKILL leaves a consistent database."""
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import signal
@@ -13,7 +14,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from server.gallery.store import Store, prepare_level
+from server.gallery.store import SavedLevel, Store, prepare_level
 from tests.gallery.conftest import level_doc
 
 THREADS = 16
@@ -115,3 +116,74 @@ def test_sigkill_during_writes_leaves_consistent_database(tmp_path: Path):
             stats = store.stats(level_id)
             assert stats["plays"] == 1 and stats["votes_up"] == 1
         store.close()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start_server(db: Path, port: int) -> subprocess.Popen:
+    import urllib.request
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    server = subprocess.Popen([sys.executable, "-m", "server.gallery.app", "--db", str(db), "--port", str(port),
+                               "--no-seed"], env=env)
+    for _ in range(300):
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/levels", timeout=1)
+            return server
+        except OSError:
+            time.sleep(0.1)
+    server.kill()
+    raise AssertionError("the gallery server did not start")
+
+
+def test_http_server_killed_during_writes_keeps_every_answered_write(tmp_path: Path):
+    import httpx
+
+    db = tmp_path / "gallery.sqlite3"
+    store = Store(f"sqlite:///{db}", seed_dir=None)
+    fake = SavedLevel("m", json.dumps(level_doc()), b"png")  # no renderer needed: only plays are written
+    level_id, _ = store.create_level("target", {}, prepared=fake)
+    store.close()
+    port = _free_port()
+    server = _start_server(db, port)
+    answered: list[int] = []
+    stop = threading.Event()
+
+    def writer() -> None:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
+            while not stop.is_set():
+                try:
+                    r = http.post(f"/api/levels/{level_id}/plays",
+                                  json={"kind": "human", "solved": True, "steps": 1, "seconds": 1.0})
+                except httpx.HTTPError:
+                    return  # the server is gone
+                assert r.status_code == 201, r.text
+                answered.append(r.json()["id"])
+
+    threads = [threading.Thread(target=writer) for _ in range(8)]
+    for t in threads:
+        t.start()
+    while len(answered) < 200:
+        time.sleep(0.05)
+    os.kill(server.pid, signal.SIGKILL)  # in the middle of writes
+    server.wait()
+    stop.set()
+    for t in threads:
+        t.join()
+    store = Store(f"sqlite:///{db}", seed_dir=None)
+    assert store.integrity_check() == []
+    plays = store.stats(level_id)["plays"]
+    assert plays >= len(answered)  # every answered write survived; at most the unanswered in-flight ones extra
+    store.close()
+    server = _start_server(db, port)  # a restart serves the same data
+    try:
+        assert httpx.get(f"http://127.0.0.1:{port}/api/levels/{level_id}/stats").json()["plays"] == plays
+    finally:
+        server.kill()
+        server.wait()

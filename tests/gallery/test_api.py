@@ -47,8 +47,11 @@ def test_token_on_create_attributes_to_author_and_remix_keeps_parent(client):
                        headers=auth("not-a-real-token")).status_code == 401
 
 
-def test_kinetix_format_is_accepted(client, shared_dir):
-    doc = json.loads((shared_dir / "kinetix-levels" / "s" / "h0_weak_thrust.json").read_text())
+def test_kinetix_format_is_accepted(client):
+    from kinetix.levels import load_level, to_document
+
+    doc = to_document(load_level(level_doc()), "kinetix")
+    assert "env_state" in doc
     made = create(client, "imported", level=doc)
     assert client.get(f"/api/levels/{made['id']}").json()["level"]["format_version"] == 1
 

@@ -21,7 +21,9 @@ THREADS = 16
 WORKLOAD_SECONDS = 10.0  # how long the threads keep writing; nothing is timed
 
 
-def test_sixteen_threads_lose_nothing(store: Store):
+def test_sixteen_threads_lose_nothing(store: Store, db_url: str):
+    # Half the threads use a second Store (its own engine and pool), as a second server process would.
+    stores = [store, Store(db_url, seed_dir=None)]
     prepared = prepare_level(level_doc())  # one render; the threads exercise the database, not the renderer
     seed_ids = [store.create_level(f"seed {i}", {}, prepared=prepared)[0] for i in range(4)]
     created: list[str] = []
@@ -33,6 +35,7 @@ def test_sixteen_threads_lose_nothing(store: Store):
 
     def worker(n: int) -> None:
         rng = random.Random(n)
+        db = stores[n % 2]
         token = None
         try:
             while time.monotonic() < stop:
@@ -41,19 +44,19 @@ def test_sixteen_threads_lose_nothing(store: Store):
                     targets = seed_ids + created
                 target = rng.choice(targets)
                 if action < 0.2:
-                    level_id, new = store.create_level(f"t{n}", {}, prepared=prepared, token=token, tags=["load"])
+                    level_id, new = db.create_level(f"t{n}", {}, prepared=prepared, token=token, tags=["load"])
                     token = token or new
                     with lock:
                         created.append(level_id)
                 elif action < 0.6 and token:
                     value = rng.choice((-1, 0, 1))
-                    store.vote(target, token, value)
+                    db.vote(target, token, value)
                     with lock:
                         votes[(target, token)] = value
                 else:
                     kind = rng.choice(("human", "agent"))
                     solved = rng.random() < 0.5
-                    store.record_play(target, kind, solved=solved, steps=rng.randrange(1000), seconds=rng.random())
+                    db.record_play(target, kind, solved=solved, steps=rng.randrange(1000), seconds=rng.random())
                     with lock:
                         plays[(target, kind, solved)] += 1
         except BaseException as error:  # noqa: B036 - reported by the main thread
@@ -64,6 +67,7 @@ def test_sixteen_threads_lose_nothing(store: Store):
         t.start()
     for t in threads:
         t.join()
+    stores[1].close()
     assert not errors, errors[:3]
     print(f"\n{store.dialect}: {len(created)} levels, {sum(plays.values())} plays, {len(votes)} vote keys")
     assert len(created) > THREADS and sum(plays.values()) > THREADS

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import re
 import sqlite3
 
-from sqlalchemy import create_engine
+from sqlalchemy import create_engine, text
 
 from server.gallery import migrations
 from server.gallery.store import Store, open_store
@@ -37,31 +38,37 @@ def test_xss_name_is_stored_verbatim(client):
     assert "onerror" not in client.get("/gallery").text
 
 
-def _v1_database(path) -> None:
-    engine = create_engine(f"sqlite:///{path}")
+def _v1_database(url: str) -> None:
+    engine = create_engine(url)
     with engine.begin() as conn:
         assert migrations.migrate(conn, target=1) == 1
-        conn.exec_driver_sql("INSERT INTO authors VALUES ('a1', 'h1', 1)")
-        conn.exec_driver_sql("INSERT INTO levels VALUES ('old', 'old level', '', 'a1', 1, 1, NULL, 'm', "
-                             f"'{__import__('json').dumps(level_doc())}', x'89504e47')")
-        conn.exec_driver_sql("INSERT INTO plays (level_id, kind, solved, steps, seconds, created) "
-                             "VALUES ('old', 'human', 1, 10, 2.0, 1)")
-        conn.exec_driver_sql("INSERT INTO votes VALUES ('old', 'a1', 1, 1)")
+        conn.execute(text("INSERT INTO authors VALUES ('a1', 'h1', 1)"))
+        conn.execute(text("INSERT INTO levels VALUES ('old', 'old level', '', 'a1', 1, 1, NULL, 'm', :doc, :png)"),
+                     {"doc": json.dumps(level_doc()), "png": b"\x89PNG"})
+        conn.execute(text("INSERT INTO plays (level_id, kind, solved, steps, seconds, created) "
+                          "VALUES ('old', 'human', TRUE, 10, 2.0, 1)"))
+        conn.execute(text("INSERT INTO votes VALUES ('old', 'a1', 1, 1)"))
+        columns = conn.execute(text("SELECT * FROM plays")).keys()
+    assert "recording_path" not in columns  # really the old schema
     engine.dispose()
 
 
-def test_v1_database_opens_in_current_code(tmp_path):
-    path = tmp_path / "old.sqlite3"
-    _v1_database(path)
-    store = Store(f"sqlite:///{path}", seed_dir=None)
+def test_v1_database_opens_in_current_code(db_url, tmp_path):
+    _v1_database(db_url)
+    store = Store(db_url, seed_dir=None, recordings_dir=tmp_path / "recordings")
     assert store.schema_version == migrations.LATEST > 1
     level = store.get_level("old")
     assert level["name"] == "old level" and level["stats"]["human_solved"] == 1 and level["stats"]["score"] == 1
+    assert store.thumbnail("old") == b"\x89PNG"
     play = store.record_play("old", "agent", solved=False, steps=3, seconds=0.1, recording_path="run1.mcap")
     assert store.recording_file(play) == tmp_path / "recordings" / "run1.mcap"
-    store.close()
-    versions = [r[0] for r in sqlite3.connect(path).execute("SELECT version FROM schema_version ORDER BY 1")]
+    with store.engine.connect() as conn:
+        versions = [r[0] for r in conn.execute(text("SELECT version FROM schema_version ORDER BY 1"))]
     assert versions == [m[0] for m in migrations.MIGRATIONS]
+    store.close()
+    again = Store(db_url, seed_dir=None)  # reopening an up-to-date database changes nothing
+    assert again.schema_version == migrations.LATEST and again.counts()["plays"] == 2
+    again.close()
 
 
 def test_newer_database_is_refused(tmp_path):
@@ -81,7 +88,7 @@ def test_seed_once_and_restart_keeps_everything(db_url, tmp_path):
     seeds = tmp_path / "seeds"
     seeds.mkdir()
     for name in ("car_right", "pinball"):
-        (seeds / f"{name}.json").write_text(__import__("json").dumps(level_doc(name)))
+        (seeds / f"{name}.json").write_text(json.dumps(level_doc(name)))
     store = Store(db_url, seed_dir=seeds)
     assert store.counts()["levels"] == 2
     assert {i["id"] for i in store.list_levels()[0]} == {"car-right", "pinball"}

@@ -117,3 +117,34 @@ def test_open_store_default_path_and_env(tmp_path, monkeypatch):
     assert (tmp_path / "env.sqlite3").exists()
     assert re.match(r"postgresql\+psycopg://", __import__("server.gallery.store", fromlist=["x"]).resolve_db_url(
         "postgresql://u@h/db"))
+
+
+def test_two_processes_starting_at_once_migrate_and_seed_once(db_url):
+    """Two stores (as two server processes would) opening an empty gallery at the same moment."""
+    import threading
+
+    from server.gallery.store import REPO_LEVELS
+
+    opened, errors = [], []
+    barrier = threading.Barrier(2)
+
+    def start() -> None:
+        try:
+            barrier.wait()
+            opened.append(Store(db_url, seed_dir=REPO_LEVELS))
+        except BaseException as error:  # noqa: B036 - reported below
+            errors.append(error)
+
+    threads = [threading.Thread(target=start) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    project = sorted(REPO_LEVELS.glob("*.json"))
+    assert opened[0].counts()["levels"] == len(project) > 0
+    items, _ = opened[0].list_levels(tag="project", limit=100)
+    assert {i["id"] for i in items} == {p.stem.replace("_", "-") for p in project}
+    assert all(opened[0].thumbnail(i["id"])[:4] == b"\x89PNG" for i in items)
+    for store in opened:
+        store.close()

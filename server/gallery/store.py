@@ -475,7 +475,7 @@ class Store:
 
     # ---- reading ----
     @staticmethod
-    def _stats_subqueries():
+    def _stats_subqueries(level_id: str | None = None):
         human = plays_t.c.kind == "human"
         agent = plays_t.c.kind == "agent"
         plays = (select(
@@ -487,16 +487,18 @@ class Store:
             func.count().filter(and_(agent, plays_t.c.solved)).label("agent_solved"),
             func.min(case((and_(human, plays_t.c.solved), plays_t.c.seconds))).label("best_human_seconds"),
             func.min(case((and_(human, plays_t.c.solved), plays_t.c.steps))).label("best_human_steps"),
-        ).group_by(plays_t.c.level_id).subquery("p"))
+        ).where(plays_t.c.level_id == level_id if level_id else True).group_by(plays_t.c.level_id).subquery("p"))
         votes = (select(
             votes_t.c.level_id,
             func.count().filter(votes_t.c.value > 0).label("up"),
             func.count().filter(votes_t.c.value < 0).label("down"),
-        ).group_by(votes_t.c.level_id).subquery("v"))
+        ).where(votes_t.c.level_id == level_id if level_id else True).group_by(votes_t.c.level_id).subquery("v"))
         return plays, votes
 
-    def _select(self):
-        p, v = self._stats_subqueries()
+    def _select(self, level_id: str | None = None):
+        # For one level the aggregates are filtered inside the subqueries: SQLite does not push the outer
+        # WHERE into a GROUP BY subquery, and would otherwise aggregate every play in the gallery.
+        p, v = self._stats_subqueries(level_id)
         n = lambda col: func.coalesce(col, 0)
         human_plays, human_solved = n(p.c.human_plays), n(p.c.human_solved)
         keys = {
@@ -581,7 +583,7 @@ class Store:
     def get_level(self, level_id: str) -> dict:
         """Metadata, stats and the level document (our format) of one level."""
         check_id(level_id)
-        query, _ = self._select()
+        query, _ = self._select(level_id)
         with self._read() as conn:
             row = conn.execute(query.add_columns(levels_t.c.level_json).where(levels_t.c.id == level_id)).first()
             if row is None:
@@ -592,7 +594,7 @@ class Store:
 
     def stats(self, level_id: str) -> dict:
         check_id(level_id)
-        query, _ = self._select()
+        query, _ = self._select(level_id)
         with self._read() as conn:
             row = conn.execute(query.where(levels_t.c.id == level_id)).first()
         if row is None:

@@ -1,0 +1,253 @@
+"""The gallery's HTTP API: a FastAPI router the side server includes under /api.
+
+    app.include_router(make_router(store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN")), prefix="/api")
+
+Request bodies are read by hand, not by FastAPI's body parameters, so the 1 MB limit is enforced before
+anything is parsed; their schemas are still published in the OpenAPI description. Every error is a 4xx
+JSON `{"detail": "what is wrong"}` and stores nothing. Store calls block, so they run in the thread pool.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Literal
+
+from fastapi import APIRouter, HTTPException, Query, Request, Response
+from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
+
+from server.gallery.store import SIZES, SORTS, Store, StoreError, check_admin
+
+MAX_BODY = 1_000_000  # bytes
+
+
+class Stats(BaseModel):
+    plays: int
+    human_plays: int
+    human_solved: int
+    human_solve_rate: float | None
+    agent_plays: int
+    agent_solved: int
+    agent_solve_rate: float | None
+    best_human_seconds: float | None
+    best_human_steps: int | None
+    votes_up: int
+    votes_down: int
+    score: int
+
+
+class LevelSummary(BaseModel):
+    id: str
+    name: str
+    description: str
+    author: str | None = Field(description="public author id (derived from the token; never the token)")
+    created: int = Field(description="milliseconds since the Unix epoch")
+    updated: int
+    parent: str | None = Field(description="the level this one remixes")
+    size: Literal["s", "m", "l"]
+    tags: list[str]
+    stats: Stats
+    thumbnail: str = Field(description="URL of the PNG thumbnail")
+
+
+class LevelDetail(LevelSummary):
+    level: dict[str, Any] = Field(description="the level in our format (docs/level-format.md)")
+
+
+class LevelPage(BaseModel):
+    items: list[LevelSummary]
+    next: str | None = Field(description="cursor of the next page, null on the last page")
+
+
+class CreateBody(BaseModel):
+    name: str = Field(max_length=100)
+    description: str = Field("", max_length=2000)
+    tags: list[str] = Field(default_factory=list, max_length=10)
+    level: dict[str, Any] = Field(description="a level in our format or the public Kinetix format")
+    parent: str | None = Field(None, description="id of the level this remixes")
+
+
+class UpdateBody(BaseModel):
+    name: str | None = Field(None, max_length=100)
+    description: str | None = Field(None, max_length=2000)
+    tags: list[str] | None = Field(None, max_length=10)
+    level: dict[str, Any] | None = None
+
+
+class Created(BaseModel):
+    id: str
+    author_token: str | None = Field(description="a new secret author token, only when the request sent none")
+
+
+class VoteBody(BaseModel):
+    value: Literal[-1, 0, 1]
+
+
+class VoteResult(BaseModel):
+    up: int
+    down: int
+    score: int
+    value: int
+    author_token: str | None = None
+
+
+class PlayBody(BaseModel):
+    kind: Literal["human", "agent"]
+    solved: bool
+    steps: int = Field(ge=0, le=10_000_000)
+    seconds: float = Field(ge=0, le=1e7)
+
+
+class PlayRecorded(BaseModel):
+    id: int
+
+
+class Ok(BaseModel):
+    ok: bool
+
+
+def _body_doc(model: type[BaseModel]) -> dict:
+    return {"requestBody": {"required": True, "content": {"application/json": {"schema": model.model_json_schema()}}}}
+
+
+async def read_json(request: Request, fields: dict[str, bool]) -> dict[str, Any]:
+    """The request body as a JSON object, at most MAX_BODY bytes, with only the known `fields`
+    ({name: required}); raises 413 / 400 / 422 before anything is stored."""
+    declared = request.headers.get("content-length")
+    if declared is not None and (not declared.isdigit() or int(declared) > MAX_BODY):
+        raise HTTPException(413, f"request body over {MAX_BODY} bytes")
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > MAX_BODY:
+            raise HTTPException(413, f"request body over {MAX_BODY} bytes")
+        chunks.append(chunk)
+    try:
+        data = json.loads(b"".join(chunks))
+    except (ValueError, RecursionError) as error:
+        raise HTTPException(400, f"body is not valid JSON: {error}"[:300]) from None
+    if not isinstance(data, dict):
+        raise HTTPException(422, "body: expected a JSON object")
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise HTTPException(422, f"body: unknown fields {', '.join(map(repr, unknown))[:200]}; "
+                                 f"allowed: {', '.join(fields)}")
+    missing = [name for name, required in fields.items() if required and name not in data]
+    if missing:
+        raise HTTPException(422, f"body: missing fields {', '.join(missing)}")
+    return data
+
+
+def bearer(request: Request) -> str | None:
+    header = request.headers.get("authorization")
+    if header is None:
+        return None
+    scheme, _, token = header.partition(" ")
+    token = token.strip()
+    if scheme.lower() != "bearer" or not token or len(token) > 200:
+        raise HTTPException(401, "malformed Authorization header: expected 'Bearer TOKEN'")
+    return token
+
+
+async def call(function, *args, **kwargs):
+    """Run a blocking store call in the thread pool, turning its errors into HTTP errors."""
+    try:
+        return await run_in_threadpool(function, *args, **kwargs)
+    except StoreError as error:
+        raise HTTPException(error.status, error.message) from None
+
+
+def _with_thumbnail(item: dict) -> dict:
+    item["thumbnail"] = f"/api/levels/{item['id']}/thumbnail.png?v={item['updated']}"
+    return item
+
+
+def make_router(store: Store, admin_token: str | None = None) -> APIRouter:
+    """The gallery API on `store`; `admin_token` (e.g. env KINETIX_ADMIN_TOKEN) may update or delete any level."""
+    router = APIRouter(tags=["gallery"])
+
+    def user_token(request: Request) -> str | None:
+        token = bearer(request)
+        if token is not None and check_admin(token, admin_token):
+            raise HTTPException(401, "the admin token can update and delete levels but not author or vote")
+        return token
+
+    @router.get("/levels", response_model=LevelPage, summary="List levels, one page at a time")
+    async def list_levels(
+        sort: Literal["newest", "top", "played", "hardest"] = Query("newest", description=", ".join(SORTS)),
+        size: Literal["s", "m", "l"] | None = Query(None, description="size class: " + ", ".join(SIZES)),
+        tag: str | None = Query(None, max_length=32),
+        q: str | None = Query(None, max_length=100, description="search the name (case-insensitive)"),
+        author: str | None = Query(None, max_length=16),
+        limit: int = Query(24, ge=1, le=100),
+        cursor: str | None = Query(None, max_length=300, description="the previous page's `next`"),
+    ) -> dict:
+        items, nxt = await call(store.list_levels, sort=sort, size=size, tag=tag, q=q, author=author, limit=limit,
+                                cursor=cursor)
+        return {"items": [_with_thumbnail(i) for i in items], "next": nxt}
+
+    @router.post("/levels", response_model=Created, status_code=201, openapi_extra=_body_doc(CreateBody),
+                 summary="Save a new level (a new author token is returned when none is sent)")
+    async def create_level(request: Request) -> dict:
+        token = user_token(request)
+        data = await read_json(request, {"name": True, "description": False, "tags": False, "level": True,
+                                         "parent": False})
+        level_id, new_token = await call(store.create_level, data["name"], data["level"],
+                                         description=data.get("description", ""), tags=data.get("tags", []),
+                                         token=token, parent=data.get("parent"))
+        return {"id": level_id, "author_token": new_token}
+
+    @router.get("/levels/{level_id}", response_model=LevelDetail, summary="One level: metadata, stats, level")
+    async def get_level(level_id: str) -> dict:
+        return _with_thumbnail(await call(store.get_level, level_id))
+
+    @router.get("/levels/{level_id}/thumbnail.png", response_class=Response, summary="The level's PNG thumbnail",
+                responses={200: {"content": {"image/png": {}}}})
+    async def thumbnail(level_id: str) -> Response:
+        png = await call(store.thumbnail, level_id)
+        # The listing links with ?v=<updated>, so a cached image is never stale.
+        return Response(png, media_type="image/png", headers={"Cache-Control": "public, max-age=86400"})
+
+    @router.put("/levels/{level_id}", response_model=Ok, openapi_extra=_body_doc(UpdateBody),
+                summary="Change a level (Authorization: Bearer <author or admin token>)")
+    async def update_level(level_id: str, request: Request) -> dict:
+        token = bearer(request)
+        admin = check_admin(token, admin_token)
+        if token is None:
+            raise HTTPException(401, "this needs the author's token: send Authorization: Bearer TOKEN")
+        await call(store.thumbnail, level_id)  # 404 before reading a body for an unknown id
+        data = await read_json(request, {"name": False, "description": False, "tags": False, "level": False})
+        await call(store.update_level, level_id, None if admin else token, admin=admin, **data)
+        return {"ok": True}
+
+    @router.delete("/levels/{level_id}", response_model=Ok,
+                   summary="Delete a level (Authorization: Bearer <author or admin token>)")
+    async def delete_level(level_id: str, request: Request) -> dict:
+        token = bearer(request)
+        admin = check_admin(token, admin_token)
+        await call(store.delete_level, level_id, None if admin else token, admin=admin)
+        return {"ok": True}
+
+    @router.post("/levels/{level_id}/vote", response_model=VoteResult, openapi_extra=_body_doc(VoteBody),
+                 summary="Vote +1, -1 or 0 (withdraw); one vote per token per level")
+    async def vote(level_id: str, request: Request) -> dict:
+        token = user_token(request)
+        data = await read_json(request, {"value": True})
+        value = data["value"]
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise HTTPException(422, "value: expected 1 (up), -1 (down) or 0 (withdraw)")
+        return await call(store.vote, level_id, token, value)
+
+    @router.post("/levels/{level_id}/plays", response_model=PlayRecorded, status_code=201,
+                 openapi_extra=_body_doc(PlayBody), summary="Record one finished play")
+    async def record_play(level_id: str, request: Request) -> dict:
+        data = await read_json(request, {"kind": True, "solved": True, "steps": True, "seconds": True})
+        play_id = await call(store.record_play, level_id, data["kind"], solved=data["solved"], steps=data["steps"],
+                             seconds=data["seconds"])
+        return {"id": play_id}
+
+    @router.get("/levels/{level_id}/stats", response_model=Stats, summary="Plays, solve rates, best time, votes")
+    async def stats(level_id: str) -> dict:
+        return await call(store.stats, level_id)
+
+    return router

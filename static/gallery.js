@@ -1,0 +1,130 @@
+// The gallery page: cards from GET /api/levels. User text is only ever set with textContent (never parsed as HTML),
+// so names like <img onerror=...> show as text. The author/voter token lives in localStorage.
+"use strict";
+const TOKEN_KEY = "kinetix.author_token";
+const VOTES_KEY = "kinetix.votes";
+const state = { sort: "newest", size: "", tag: "", q: "", next: null, loading: false };
+const grid = document.getElementById("grid");
+const more = document.getElementById("more");
+const statusLine = document.getElementById("status");
+
+function token() { return localStorage.getItem(TOKEN_KEY); }
+function myVotes() { try { return JSON.parse(localStorage.getItem(VOTES_KEY) || "{}"); } catch { return {}; } }
+function percent(rate) { return rate === null ? "–" : Math.round(rate * 100) + "%"; }
+function seconds(s) { return s === null ? "–" : s.toFixed(1) + " s"; }
+function setStatus(text) { statusLine.textContent = text || ""; }
+
+async function api(path, options = {}) {
+  const response = await fetch(path, options);
+  const body = await response.json().catch(() => ({}));
+  if (!response.ok) {
+    const detail = typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail || response.status);
+    throw Object.assign(new Error(detail), { status: response.status });
+  }
+  return body;
+}
+
+function card(level) {
+  const node = document.getElementById("card").content.firstElementChild.cloneNode(true);
+  const q = (selector) => node.querySelector(selector);
+  const id = encodeURIComponent(level.id);
+  q(".thumb").href = `/?level=${id}&mode=play`;
+  q("img").src = level.thumbnail;
+  q("img").alt = level.name;
+  q(".name").textContent = level.name;
+  q(".name").title = level.description;
+  q(".author").textContent = level.author ? "author " + level.author.slice(0, 6) : "kinetix";
+  const date = new Date(level.created);
+  q(".date").textContent = date.toLocaleDateString();
+  q(".date").dateTime = date.toISOString();
+  q(".size").textContent = "size " + level.size;
+  q(".tags").textContent = level.tags.map((t) => "#" + t).join(" ");
+  q(".plays").textContent = String(level.stats.plays);
+  q(".human").textContent = percent(level.stats.human_solve_rate);
+  q(".agent").textContent = percent(level.stats.agent_solve_rate);
+  q(".best").textContent = seconds(level.stats.best_human_seconds);
+  q(".score").textContent = String(level.stats.score);
+  q(".play").href = `/?level=${id}&mode=play`;
+  q(".edit").href = `/?level=${id}`;
+  const mine = myVotes()[level.id] || 0;
+  q(".up").classList.toggle("mine", mine === 1);
+  q(".down").classList.toggle("mine", mine === -1);
+  q(".up").addEventListener("click", () => vote(level, node, mine === 1 ? 0 : 1));
+  q(".down").addEventListener("click", () => vote(level, node, mine === -1 ? 0 : -1));
+  q(".share").addEventListener("click", async () => {
+    const link = new URL(`/?level=${id}&mode=play`, location.href).href;
+    try { await navigator.clipboard.writeText(link); setStatus("Link copied: " + link); }
+    catch { setStatus("Share this link: " + link); }
+  });
+  return node;
+}
+
+async function vote(level, node, value) {
+  const headers = { "Content-Type": "application/json" };
+  if (token()) headers.Authorization = "Bearer " + token();
+  try {
+    let result;
+    try {
+      result = await api(`/api/levels/${encodeURIComponent(level.id)}/vote`,
+        { method: "POST", headers, body: JSON.stringify({ value }) });
+    } catch (error) {
+      if (error.status !== 401 || !token()) throw error;
+      localStorage.removeItem(TOKEN_KEY);  // a token this gallery does not know (e.g. a reset database)
+      delete headers.Authorization;
+      result = await api(`/api/levels/${encodeURIComponent(level.id)}/vote`,
+        { method: "POST", headers, body: JSON.stringify({ value }) });
+    }
+    if (result.author_token) localStorage.setItem(TOKEN_KEY, result.author_token);
+    const votes = myVotes();
+    votes[level.id] = value;
+    localStorage.setItem(VOTES_KEY, JSON.stringify(votes));
+    level.stats.score = result.score;
+    node.replaceWith(card(level));
+  } catch (error) {
+    setStatus("Vote failed: " + error.message);
+  }
+}
+
+async function load(reset) {
+  if (state.loading) return;
+  state.loading = true;
+  const params = new URLSearchParams({ sort: state.sort, limit: "24" });
+  if (state.size) params.set("size", state.size);
+  if (state.tag) params.set("tag", state.tag);
+  if (state.q) params.set("q", state.q);
+  if (!reset && state.next) params.set("cursor", state.next);
+  try {
+    const page = await api("/api/levels?" + params);
+    if (reset) grid.replaceChildren();
+    for (const level of page.items) grid.append(card(level));
+    state.next = page.next;
+    more.hidden = !page.next;
+    setStatus(grid.children.length ? "" : "No levels match.");
+  } catch (error) {
+    setStatus("Could not load the gallery: " + error.message);
+  } finally {
+    state.loading = false;
+  }
+}
+
+for (const tab of document.querySelectorAll("#tabs button")) {
+  tab.addEventListener("click", () => {
+    for (const other of document.querySelectorAll("#tabs button")) other.setAttribute("aria-selected", "false");
+    tab.setAttribute("aria-selected", "true");
+    state.sort = tab.dataset.sort;
+    load(true);
+  });
+}
+let typing = null;
+function onFilter() {
+  clearTimeout(typing);
+  typing = setTimeout(() => {
+    state.size = document.getElementById("size").value;
+    state.tag = document.getElementById("tag").value.trim().toLowerCase();
+    state.q = document.getElementById("search").value.trim();
+    load(true);
+  }, 250);
+}
+for (const id of ["size", "tag", "search"]) document.getElementById(id).addEventListener("input", onFilter);
+more.addEventListener("click", () => load(false));
+load(true);

@@ -77,6 +77,9 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8080, help="port to listen on (default: 8080)")
     parser.add_argument("--data", metavar="DIR", help="directory for saved levels and recordings")
+    parser.add_argument("--db", metavar="URL", help="PostgreSQL URL for the gallery (default: SQLite in --data)")
+    parser.add_argument("--max-sessions", type=positive_int, default=8,
+                        help="most browser tabs served at once; more get a 'server full' message (default: 8)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:
@@ -99,7 +102,7 @@ COMMANDS: list[Command] = [
         "kinetix.bench.engine:run",
         _bench_engine_arguments,
     ),
-    Command(("serve",), "start the browser editor and playground", "kinetix.cli:serve_placeholder", _serve_arguments),
+    Command(("serve",), "start the browser editor and playground", "server.app:serve", _serve_arguments),
     Command(
         ("validate",),
         "load level files and simulate them with random actions; exit status 1 if any fails",
@@ -115,18 +118,6 @@ COMMANDS: list[Command] = [
 ]
 
 GROUP_HELP = {("bench",): "measure performance"}
-
-
-def serve_placeholder(args: argparse.Namespace) -> int:
-    """Stands in for the web server until it exists: runs the engine demo when there is one."""
-    print("kinetix serve: the web server is not built yet.", file=sys.stderr)
-    try:
-        demo = _load("kinetix.demo:main")
-    except CommandUnavailable:
-        print("server not built yet (and no engine demo, kinetix.demo, to run instead)", file=sys.stderr)
-        return 2
-    print("Running the engine demo instead.", file=sys.stderr)
-    return demo() or 0
 
 
 def build_parser() -> argparse.ArgumentParser:

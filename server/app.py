@@ -7,7 +7,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import logging
 import os
 import signal
@@ -35,6 +37,7 @@ class Config:
     max_sessions: int = 8
     warm_sizes: tuple[str, ...] = ("s", "m", "l")  # compile the play step for these before serving
     gallery: bool = True  # include the gallery router when server.gallery is installed
+    editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
 
 
 class App:
@@ -82,9 +85,11 @@ class App:
             t0 = time.perf_counter()
             play.warm_up((size,))
             log.info("compiled the play step for size %s in %.1f s", size, time.perf_counter() - t0)
-        self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
+            self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
         self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)
-        self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions)
+        self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
+                                      editor_factory=self.config.editor_factory)
         app = create_app(self.manager, self.viser.get_port(), gallery_router=self._gallery_router())
         config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
         self._uvicorn = uvicorn.Server(config)
@@ -121,7 +126,8 @@ class App:
         if self._thread is not None:
             self._thread.join(timeout=5)
         if self.viser is not None:
-            self.viser.stop()
+            with contextlib.redirect_stdout(io.StringIO()):
+                self.viser.stop()
         if self._socket is not None:
             self._socket.close()
 

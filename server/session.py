@@ -40,11 +40,12 @@ class Session:
     """One tab. Build with SessionManager; `client` is a viser ClientHandle (or a test double with .scene/.gui)."""
 
     def __init__(self, client, manager: SessionManager, level=None, size: str = "m"):
+        editor_factory = manager.editor_factory or _editor_module().Editor
         self.client = client
         self.manager = manager
         self.nonce = secrets.token_urlsafe(16)
         self.lock = threading.RLock()
-        self.editor = _editor_module().Editor(level, size=size)
+        self.editor = editor_factory(level, size=size)
         self.mode = "edit"  # "edit" | "play" | "paused" | "ended"
         self.held: set[str] = set()
         self.closed = False
@@ -374,8 +375,10 @@ class Session:
 class SessionManager:
     """All sessions of one server: created on viser connect, removed on disconnect, capped at `max_sessions`."""
 
-    def __init__(self, server, *, max_sessions: int = 8, initial_level: Callable | None = None):
+    def __init__(self, server, *, max_sessions: int = 8, initial_level: Callable | None = None,
+                 editor_factory: Callable | None = None):
         self.server = server
+        self.editor_factory = editor_factory  # (level, size=) -> Editor; default server.editor.Editor
         self.max_sessions = max_sessions
         self.initial_level = initial_level  # (client) -> LevelFile | None, e.g. from ?level= (gallery)
         self._lock = threading.Lock()

@@ -94,13 +94,25 @@ class Session:
         self.client.send_file_download(filename, content, save_immediately=True)
 
     def _wire_pointer(self) -> None:
+        # viser runs plain callbacks on a thread pool fire-and-forget, so a drag's start and update could run out
+        # of order; async callbacks run in arrival order on viser's event loop. They only do quick editor calls
+        # and an edit-mode render (a few ms).
+        async def on_click(event) -> None:
+            self._on_click(event)
+
+        async def on_rect_select(event) -> None:
+            self._on_rect_select(event)
+
+        async def on_drag(event) -> None:
+            self._on_drag(event)
+
         scene = self.client.scene
-        scene.on_click()(self._on_click)
-        scene.on_rect_select(modifier="shift")(self._on_rect_select)
+        scene.on_click()(on_click)
+        scene.on_rect_select(modifier="shift")(on_rect_select)
         # An invisible sphere around the camera catches drags anywhere on the canvas (study section 2).
         self._catcher = scene.add_icosphere("/kinetix/catcher", radius=200.0, color=(255, 255, 255), opacity=0.0,
                                             side="double")
-        self._catcher.on_drag("left")(self._on_drag)
+        self._catcher.on_drag("left")(on_drag)
         self.client.camera.on_update(lambda _: self.refresh())
 
     def world(self, screen_pos) -> tuple[float, float]:
@@ -338,6 +350,8 @@ class Session:
             self._push_frame()
 
     def _push_frame(self, ack: bool = False) -> None:
+        if self.closed:
+            return
         try:
             frame = self.render()
         except Exception:
@@ -385,27 +399,38 @@ class SessionManager:
         self.sessions: dict[int, Session] = {}
         self.by_nonce: dict[str, Session] = {}
         self.rejected: set[int] = set()
+        self._starting = 0
+        self._gone: set[int] = set()
         server.on_client_connect(self._connect)
         server.on_client_disconnect(self._disconnect)
 
     def _connect(self, client) -> None:
-        with self._lock:
-            full = len(self.sessions) >= self.max_sessions
+        with self._lock:  # reserve the slot now: sessions take a moment to build and connects can overlap
+            full = len(self.sessions) + self._starting >= self.max_sessions
             if full:
                 self.rejected.add(client.client_id)
+            else:
+                self._starting += 1
         if full:
             self._reject(client)
             return
+        session = None
         try:
             level = self.initial_level(client) if self.initial_level else None
             session = Session(client, self, level=level)
         except Exception:
             log.exception("could not start a session")
             client.gui.add_markdown("**Could not start a session.** See the server log.")
-            return
-        with self._lock:
-            self.sessions[client.client_id] = session
-            self.by_nonce[session.nonce] = session
+        finally:
+            with self._lock:
+                self._starting -= 1
+                gone = client.client_id in self._gone  # the tab closed while its session was being built
+                self._gone.discard(client.client_id)
+                if session is not None and not gone:
+                    self.sessions[client.client_id] = session
+                    self.by_nonce[session.nonce] = session
+            if session is not None and gone:
+                session.close()
 
     def _reject(self, client) -> None:
         text = (f"**The server is full**: it allows {self.max_sessions} open tabs at a time. "
@@ -419,10 +444,13 @@ class SessionManager:
 
     def _disconnect(self, client) -> None:
         with self._lock:
+            was_rejected = client.client_id in self.rejected
             self.rejected.discard(client.client_id)
             session = self.sessions.pop(client.client_id, None)
             if session is not None:
                 self.by_nonce.pop(session.nonce, None)
+            elif self._starting and not was_rejected:
+                self._gone.add(client.client_id)
         if session is not None:
             session.close()
 

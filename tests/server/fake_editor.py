@@ -29,6 +29,7 @@ class FakeEditor:
         self.tool = "select"
         self.clicks: list = []
         self.keys: list = []
+        self.calls: list = []  # (method, args, kwargs) of pointer calls other than click
         self._cache = None
 
     def level_file(self) -> LevelFile:
@@ -47,13 +48,16 @@ class FakeEditor:
     def overlay(self):
         return FakeOverlay()
 
-    def __getattr__(self, name):  # pointer_down / move / up, box_select, hover: recorded as no-ops
+    def __getattr__(self, name):  # pointer_down / move / up, box_select, hover: recorded, no effect
         if name.startswith("_"):
             raise AttributeError(name)
-        return lambda *args, **kwargs: None
+        return lambda *args, **kwargs: self.calls.append((name, args, kwargs))
 
 
-def spec_with_circle(x=2.5, y=3.0, r=0.3) -> LevelSpec:
+def falling_win_spec() -> LevelSpec:
+    """A green ball above a fixed blue block: it falls and wins within about a second."""
     spec = describe(empty_level("m"))
-    spec.bodies.append(BodySpec(path="bodies[new]", shape="circle", position=(x, y), radius=r))
+    spec.bodies.append(BodySpec(path="ball", shape="circle", position=(2.5, 1.6), radius=0.25, role=1))
+    half = [(-0.5, -0.2), (0.5, -0.2), (0.5, 0.2), (-0.5, 0.2)]
+    spec.bodies.append(BodySpec(path="goal", shape="polygon", position=(2.5, 0.8), vertices=half, role=2, fixed=True))
     return spec

@@ -145,11 +145,50 @@ class ViserTestClient:
         self.send("ScenePointerMessage", event_type="rect-select", ray_origin=None, ray_direction=None,
                   screen_pos=[[u0, v0], [u1, v1]], modifier="shift")
 
-    def drag(self, name: str, points: list[tuple[float, float]], modifier: str | None = None) -> None:
-        """start at points[0], updates through the middle, end at points[-1] (screen positions 0..1)."""
+    def drag(self, name: str, points: list[tuple[float, float]], modifier: str | None = None, owner: str = "") -> None:
+        """start at points[0], updates through the middle, end at points[-1] (screen positions 0..1).
+
+        `owner` echoes the node's scope: the client id as a string for client-scoped nodes."""
         start = points[0]
         for i, point in enumerate(points):
             phase = "start" if i == 0 else "end" if i == len(points) - 1 else "update"
             self.send("SceneNodeDragMessage", phase=phase, name=name, instance_index=None,
                       start_position=(0.0, 0.0, 0.0), start_screen_pos=start, end_position=(0.0, 0.0, 0.0),
-                      end_screen_pos=point, button="left", modifier=modifier)
+                      end_screen_pos=point, button="left", modifier=modifier, owner=owner)
+
+
+class KeysSocket:
+    """The /keys websocket as keys.js speaks it: hello with the tab's nonce, then down/up events."""
+
+    def __init__(self, port: int, nonce: str, host: str = "127.0.0.1"):
+        import json
+
+        self._json = json
+        self.ws = websockets.sync.client.connect(f"ws://{host}:{port}/keys", open_timeout=10)
+        self.ws.send(json.dumps({"type": "hello", "nonce": nonce, "query": ""}))
+        self.reply = json.loads(self.ws.recv(timeout=10))
+        self.seq = 0
+
+    def send(self, kind: str, code: str, key: str = "", **mods) -> int:
+        self.seq += 1
+        self.ws.send(self._json.dumps({"type": kind, "code": code, "key": key or code, "seq": self.seq,
+                                       "t": time.time() * 1000, **{m: bool(mods.get(m)) for m in
+                                                                    ("ctrl", "shift", "alt", "meta")}}))
+        return self.seq
+
+    def down(self, code: str, key: str = "", **mods) -> int:
+        return self.send("down", code, key, **mods)
+
+    def up(self, code: str, key: str = "", **mods) -> int:
+        return self.send("up", code, key, **mods)
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def session_nonce(client: ViserTestClient, timeout: float = 10.0) -> str:
+    import re
+
+    message = client.wait_for(lambda m: m["type"] == "GuiHtmlMessage" and "kinetix-session" in m["props"]["content"],
+                              timeout)
+    return re.search(r'data-nonce="([^"]+)"', message["props"]["content"]).group(1)

@@ -73,6 +73,14 @@ def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=positive_int, default=200, help="physics steps per measurement (default: 200)")
 
 
+def _bench_server_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print one JSON object per line")
+    parser.add_argument("--samples", type=positive_int, default=40, help="key presses for the latency (default: 40)")
+    parser.add_argument("--sessions", type=positive_int, default=8, help="concurrent playing sessions (default: 8)")
+    parser.add_argument("--seconds", type=float, default=5.0, help="seconds per fps measurement (default: 5)")
+    parser.add_argument("--chromium", default="/usr/bin/chromium", help="Chromium binary for the latency")
+
+
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8080, help="port to listen on (default: 8080)")
@@ -101,6 +109,12 @@ COMMANDS: list[Command] = [
         "measure physics steps per second across size classes and batch sizes",
         "kinetix.bench.engine:run",
         _bench_engine_arguments,
+    ),
+    Command(
+        ("bench", "server"),
+        "measure the browser server: draw time, key-to-frame latency in Chromium, fps and RSS with 8 sessions",
+        "server.bench:run",
+        _bench_server_arguments,
     ),
     Command(("serve",), "start the browser editor and playground", "server.app:serve", _serve_arguments),
     Command(

@@ -37,6 +37,7 @@ class Config:
     max_sessions: int = 8
     warm_sizes: tuple[str, ...] = ("s", "m", "l")  # compile the play step for these before serving
     gallery: bool = True  # include the gallery router when server.gallery is installed
+    level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
 
 
@@ -89,7 +90,8 @@ class App:
             self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
         self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
-                                      editor_factory=self.config.editor_factory)
+                                      editor_factory=self.config.editor_factory,
+                                      initial_level=self._initial_level())
         app = create_app(self.manager, self.viser.get_port(), gallery_router=self._gallery_router())
         config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
         self._uvicorn = uvicorn.Server(config)
@@ -104,6 +106,14 @@ class App:
             self.stop()
             raise RuntimeError("the side server did not start")
         return self
+
+    def _initial_level(self):
+        if not self.config.level:
+            return None
+        from kinetix.levels import load_level
+
+        level_file = load_level(self.config.level)  # a bad file fails at startup with a LevelError message
+        return lambda client: level_file
 
     def _gallery_router(self):
         """The gallery's API router (issue 5) when that package is installed, else None."""

@@ -174,7 +174,7 @@ def _static_layer(scene: Scene | None, big: View, px, s: float, outline: int) ->
 
 
 def draw_frame(scene: Scene | None, view: View, *, overlay=None, hud: str = "", banner: str = "",
-               legend: bool = True) -> np.ndarray:
+               legend: bool = True, message: str | None = None) -> np.ndarray:
     """An (height, width, 3) uint8 RGB frame of the scene with the editor overlay, a HUD line and a banner.
 
     Static bodies are drawn once per view into a cached layer; per frame only the box around the moving
@@ -214,7 +214,7 @@ def draw_frame(scene: Scene | None, view: View, *, overlay=None, hud: str = "", 
                 getattr(draw, name)(*_shift(args, -left, -top), **kwargs)
             frame.paste(patch.reduce(ss), (left // ss, top // ss))
     draw = ImageDraw.Draw(frame)
-    _draw_text(draw, view, hud=hud, banner=banner, message=getattr(overlay, "message", None),
+    _draw_text(draw, view, hud=hud, banner=banner, message=message or getattr(overlay, "message", None),
                legend=_legend(used_motor, used_thruster) if legend else [])
     return np.asarray(frame)
 

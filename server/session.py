@@ -30,17 +30,74 @@ JPEG_QUALITY = 85
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke."}
 
 
-def _editor_module():
-    import server.editor as editor_module  # the editor helper's package (CONTRACT section 3)
+def default_editor_factory() -> Callable:
+    """server.editor.Editor (CONTRACT section 3); without that package, a play-only stand-in so serving still works."""
+    try:
+        from server.editor import Editor
+    except ImportError:
+        log.warning("server.editor is not installed: levels can be played but not edited")
+        return PlayOnlyEditor
+    return Editor
 
-    return editor_module
+
+class PlayOnlyEditor:
+    """The part of the Editor interface a session needs to show and play a level, with every edit refused."""
+
+    tool = "none"
+    selection: list = []
+
+    def __init__(self, level=None, size: str = "m"):
+        from kinetix.formats import describe
+        from kinetix.level import LevelFile, empty_level, size_class
+
+        if level is None:
+            level = LevelFile(empty_level(size_class(size)))
+        self._level_file = level if isinstance(level, LevelFile) else None
+        if self._level_file is None:
+            from kinetix.formats import build
+
+            self._level_file = build(level, size_class(size))
+        self.spec = describe(self._level_file.level, self._level_file.params)
+        self.size = self._level_file.size
+        self.revision = 0
+
+    def level_file(self):
+        return self._level_file
+
+    def overlay(self):
+        return None
+
+    def key(self, key: str, **mods) -> bool:
+        return False
+
+    def __getattr__(self, name: str):  # pointer_down, click, box_select, ...: no editing without the editor
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return lambda *args, **kwargs: "editing needs the server.editor package"
+
+
+def _set_background_jpeg(client, data: bytes, frame: np.ndarray) -> None:
+    """Queue an already encoded JPEG as the scene background.
+
+    Pillow encodes a frame about twice as fast as viser's imageio fallback (no OpenCV here), which matters with 8
+    sessions at 30 fps. viser 1.1.1 (pinned) has no public call for encoded bytes, so this queues the same message
+    set_background_image would, and falls back to the public call if viser's internals ever differ.
+    """
+    try:
+        from viser._messages import BackgroundImageMessage
+
+        queue = client.scene._websock_interface.queue_message
+    except (ImportError, AttributeError):
+        client.scene.set_background_image(frame, format="jpeg", jpeg_quality=JPEG_QUALITY)
+        return
+    queue(BackgroundImageMessage(format="jpeg", rgb_data=data, depth_data=None))
 
 
 class Session:
     """One tab. Build with SessionManager; `client` is a viser ClientHandle (or a test double with .scene/.gui)."""
 
     def __init__(self, client, manager: SessionManager, level=None, size: str = "m"):
-        editor_factory = manager.editor_factory or _editor_module().Editor
+        editor_factory = manager.editor_factory or default_editor_factory()
         self.client = client
         self.manager = manager
         self.nonce = secrets.token_urlsafe(16)
@@ -281,7 +338,10 @@ class Session:
                 self._step_request = False
                 if run:
                     self._advance(stepper, state, params, ack=key_now)
-                    next_tick = time.perf_counter() + tick
+                    # A fixed schedule (not "now + tick") so the work of a frame does not lower the frame rate;
+                    # after a stall (or a key-driven early step) the schedule restarts from now.
+                    now = time.perf_counter()
+                    next_tick = next_tick + tick if now - next_tick < tick else now + tick
                 elif key_now:
                     self._push_frame(ack=True)
             self._wake.wait(timeout=max(0.0, next_tick - time.perf_counter()) if self.mode == "play" else 0.5)
@@ -327,10 +387,8 @@ class Session:
         if self.mode == "edit":
             level = self.editor.level_file().level
             overlay = self.editor.overlay()
-            message = self._message
-            if message and overlay is not None and not overlay.message:
-                overlay.message = message
-            return draw.draw_frame(draw.scene_of(level), self._view, overlay=overlay, hud=self.hud())
+            message = getattr(overlay, "message", None) or self._message
+            return draw.draw_frame(draw.scene_of(level), self._view, overlay=overlay, hud=self.hud(), message=message)
         stepper, state, params = self._play
         banner = ""
         if self.mode == "ended":
@@ -358,8 +416,9 @@ class Session:
             log.exception("render failed")
             return
         client = self.client
+        data = draw.encode_jpeg(frame, JPEG_QUALITY)
         with client.atomic():
-            client.scene.set_background_image(frame, format="jpeg", jpeg_quality=JPEG_QUALITY)
+            _set_background_jpeg(client, data, frame)
             if ack:
                 self._ack.content = f'<div id="kinetix-ack" data-seq="{self.last_key_seq}" hidden></div>'
         client.flush()

@@ -21,7 +21,7 @@
   const held = new Set();
   let socket = null, ready = false, nonce = null, seq = 0;
   const queue = [];
-  window.__kinetixKeys = { sent: [], held };  // for tests and the benchmark
+  window.__kinetixKeys = { sent: [], held, ready: () => ready };  // for tests and the benchmark
 
   function send(message) {
     if (socket && ready) socket.send(JSON.stringify(message));

@@ -46,10 +46,10 @@ def _latency(app, chromium: str, samples: int) -> list[float]:
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--use-gl=swiftshader"])
-        page = browser.new_page(viewport={"width": 900, "height": 600})
+        page = browser.new_page(viewport={"width": 640, "height": 480})
         page.goto(app.url)
         page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
-        page.mouse.click(450, 300)  # focus the canvas (a click on an empty canvas edits nothing with select)
+        page.mouse.click(320, 240)  # focus the canvas (a click on an empty canvas edits nothing with select)
         page.keyboard.press("Space")
         page.wait_for_timeout(500)
         page.evaluate("""() => {

@@ -146,7 +146,8 @@ def serve(args) -> int:
     """`kinetix serve`: start, print the URL, run until Ctrl+C (or SIGTERM), then shut down cleanly."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
-                    db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8))
+                    db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
+                    warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

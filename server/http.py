@@ -87,6 +87,10 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 await socket.close(code=1008, reason="unknown session")
                 return
             await socket.send_text(json.dumps({"type": "ready"}))
+            query = hello.get("query")
+            if isinstance(query, str) and query and manager.on_query is not None:
+                # e.g. /?level=<gallery id>&mode=play: the page's query reaches Python only through this socket.
+                await asyncio.get_running_loop().run_in_executor(None, manager.on_query, session, query)
             while True:
                 event = await _receive(socket)
                 kind, code = event.get("type"), event.get("code")

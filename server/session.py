@@ -452,6 +452,8 @@ class SessionManager:
                  editor_factory: Callable | None = None):
         self.server = server
         self.editor_factory = editor_factory  # (level, size=) -> Editor; default server.editor.Editor
+        # (session, "?level=...&mode=play") -> None: set by the gallery integration to open a level from the URL.
+        self.on_query: Callable[[Session, str], None] | None = None
         self.max_sessions = max_sessions
         self.initial_level = initial_level  # (client) -> LevelFile | None, e.g. from ?level= (gallery)
         self._lock = threading.Lock()

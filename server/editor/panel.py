@@ -1,0 +1,234 @@
+"""The edit-mode GUI in viser: tools, edit buttons, the property panel of the selection, level settings,
+files, snapping and the size-class limits. The only module of the editor that imports viser.
+
+Widgets call the editor under `lock` (pass the session's lock so GUI callbacks, which viser runs on a
+thread pool, never interleave with pointer input) and then `on_change()` outside the lock.
+`refresh()` writes the editor's state back into the widgets; while it runs, widget callbacks are ignored
+(viser calls update callbacks synchronously when Python assigns a value).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import random
+import threading
+from collections.abc import Callable
+
+import viser
+
+from kinetix.level import ROLE_NAMES, SIZES
+from server.editor.editor import TOOLS, Editor
+from server.editor.levelio import EditorError
+from server.editor.properties import COLLISION_MODES
+
+TOOL_LABELS = {"select": "Select", "circle": "Circle", "rectangle": "Rect", "triangle": "Triangle",
+               "polygon": "Polygon", "revolute": "Hinge", "fixed": "Weld", "thruster": "Thruster"}
+TOOL_OF_LABEL = {label: tool for tool, label in TOOL_LABELS.items()}
+MOTOR_BINDINGS = ("0: Left/Right", "1: Up/Down", "2: W/S", "3: A/D")
+THRUSTER_BINDINGS = ("0: key 1", "1: key 2")
+
+
+class EditorPanel:
+    def __init__(self, gui: viser.GuiApi, editor: Editor, on_change: Callable[[], None],
+                 send_download: Callable[[str, bytes], None], *, lock: threading.RLock | None = None):
+        self.gui, self.editor, self.on_change, self.send_download = gui, editor, on_change, send_download
+        self.lock = lock or threading.RLock()
+        self._refreshing = False
+        self._build()
+        self.refresh()
+
+    # ------------------------------------------------------------ plumbing
+
+    def _act(self, action: Callable[[], object]) -> None:
+        """Run one editor action from a widget, then refresh the widgets and tell the session."""
+        if self._refreshing:
+            return
+        with self.lock:
+            try:
+                action()
+            except EditorError as error:
+                self.editor._say(str(error))
+            self.refresh()
+        self.on_change()
+
+    def _button(self, label: str, action: Callable[[], object], hint: str | None = None, **kw):
+        button = self.gui.add_button(label, hint=hint, **kw)
+        button.on_click(lambda _: self._act(action))
+        return button
+
+    def _field(self, handle, name: str, convert=lambda v: v):
+        handle.on_update(lambda _: self._act(lambda: self.editor.set_properties(**{name: convert(handle.value)})))
+        return handle
+
+    # ------------------------------------------------------------ widgets
+
+    def _build(self) -> None:
+        gui, ed = self.gui, self.editor
+        self.tools = gui.add_button_group("Tool", [TOOL_LABELS[t] for t in TOOLS])
+        self.tools.on_click(lambda event: self._act(lambda: ed.set_tool(TOOL_OF_LABEL[event.target.value])))
+        self.tool_line = gui.add_markdown("")
+        self.message = gui.add_markdown("")
+        self.limits_line = gui.add_markdown("")
+
+        with gui.add_folder("Edit"):
+            self.undo_button = self._button("Undo", ed.undo, "Ctrl+Z", icon=None)
+            self.redo_button = self._button("Redo", ed.redo, "Ctrl+Shift+Z / Ctrl+Y")
+            self._button("Delete", ed.delete_selection, "Delete / Backspace")
+            self._button("Duplicate", ed.duplicate_selection, "Ctrl+D")
+            self._button("Copy", ed.copy, "Ctrl+C")
+            self._button("Paste", ed.paste, "Ctrl+V")
+            self._button("Rotate +15°", lambda: ed.rotate_selection(15.0), "R")
+            self._button("Rotate -15°", lambda: ed.rotate_selection(-15.0), "Shift+R")
+            self._button("Grow", lambda: ed.scale_selection(1.1), "+")
+            self._button("Shrink", lambda: ed.scale_selection(1 / 1.1), "-")
+            self._button("Finish polygon", ed.finish_polygon, "Enter, or click the first vertex")
+
+        with gui.add_folder("Selection"):
+            self.summary = gui.add_markdown("Nothing selected.")
+            self.role = self._field(gui.add_dropdown("Role", ROLE_NAMES), "role")
+            self.fixed = self._field(gui.add_checkbox("Fixed", False), "fixed")
+            self.density = self._field(gui.add_number("Density", 1.0, min=0.001, step=0.1), "density")
+            self.friction = self._field(gui.add_number("Friction", 1.0, min=0.0, step=0.05), "friction")
+            self.restitution = self._field(gui.add_number("Restitution", 0.0, min=0.0, max=1.0, step=0.05),
+                                           "restitution")
+            self.collision = self._field(gui.add_dropdown("Collides with", COLLISION_MODES, initial_value="normal"),
+                                         "collision_mode")
+            self.joint_type = self._field(gui.add_dropdown("Joint type", ("revolute", "fixed")), "joint_type")
+            self.motor_on = self._field(gui.add_checkbox("Motor on", False), "motor_on")
+            self.motor_speed = self._field(gui.add_number("Motor speed", 1.0, step=0.1), "motor_speed")
+            self.motor_power = self._field(gui.add_number("Motor power", 1.0, min=0.0, step=0.1), "motor_power")
+            self.motor_binding = self._field(gui.add_dropdown("Motor keys", MOTOR_BINDINGS), "motor_binding",
+                                             MOTOR_BINDINGS.index)
+            self.limits_on = self._field(gui.add_checkbox("Angle limits", False), "limits_on")
+            self.limit_min = self._field(gui.add_number("Limit min (°)", -45.0, step=5.0), "limit_min")
+            self.limit_max = self._field(gui.add_number("Limit max (°)", 45.0, step=5.0), "limit_max")
+            self.thruster_power = self._field(gui.add_number("Thruster power", 1.0, min=0.0, step=0.1),
+                                              "thruster_power")
+            self.thruster_direction = self._field(gui.add_number("Direction (°)", 90.0, step=15.0),
+                                                  "thruster_direction")
+            self.thruster_binding = self._field(gui.add_dropdown("Thruster key", THRUSTER_BINDINGS),
+                                                "thruster_binding", THRUSTER_BINDINGS.index)
+        self.body_widgets = (self.role, self.fixed, self.density, self.friction, self.restitution, self.collision)
+        self.joint_widgets = (self.joint_type, self.motor_on, self.motor_speed, self.motor_power, self.motor_binding,
+                              self.limits_on, self.limit_min, self.limit_max)
+        self.thruster_widgets = (self.thruster_power, self.thruster_direction, self.thruster_binding)
+
+        with gui.add_folder("Level"):
+            self.gravity = gui.add_vector2("Gravity", tuple(ed.spec.gravity), step=0.1)
+            self.gravity.on_update(lambda _: self._act(lambda: ed.set_gravity(*self.gravity.value)))
+            self.size = gui.add_dropdown("Size class", tuple(SIZES),
+                                         initial_value=ed.size.name if ed.size.name in SIZES else "l")
+            self.size.on_update(lambda _: self._act(lambda: ed.set_size(self.size.value)))
+            self.seed = gui.add_number("Seed", random.randrange(1 << 16), min=0, step=1)
+            self._button("New level", lambda: ed.new_level(self.size.value), "walls only, in the chosen size")
+            self._button("Shake it up", lambda: ed.shake_it_up(self._next_seed()), "apply random mutators")
+            self._button("Random level", lambda: ed.random_level(self._next_seed(), self.size.value))
+
+        with gui.add_folder("Snapping"):
+            self.snapping = gui.add_checkbox("Snap", ed.snapping, hint="grid, centres, vertices, edge midpoints")
+            self.snapping.on_update(lambda _: self._act(lambda: setattr(ed, "snapping", bool(self.snapping.value))))
+            self.grid = gui.add_number("Grid (m)", ed.grid, min=0.0, max=1.0, step=0.05)
+            self.grid.on_update(lambda _: self._act(lambda: self._set_grid(self.grid.value)))
+
+        with gui.add_folder("File"):
+            self.upload = gui.add_upload_button("Upload level", mime_type="application/json")
+            self.upload.on_upload(lambda _: self.upload_file(self.upload.value.name, self.upload.value.content))
+            self._button("Download (our format)", lambda: self.download("ours"))
+            self._button("Download (Kinetix JSON)", lambda: self.download("kinetix"))
+
+    def _next_seed(self) -> int:
+        seed = int(self.seed.value)
+        self.seed.value = seed + 1  # the next press gives another level (refresh is not running: value only)
+        return seed
+
+    def _set_grid(self, value: float) -> None:
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            raise EditorError(f"grid must be >= 0, got {value!r}")
+        self.editor.grid = float(value)
+        self.editor._bump()
+
+    # ------------------------------------------------------------ files
+
+    def upload_file(self, name: str, content: bytes) -> None:
+        self._act(lambda: self.editor.import_bytes(content, name))
+
+    def download(self, format: str) -> None:
+        with self.lock:
+            try:
+                text = self.editor.export(format)
+            except EditorError as error:
+                self.editor._say(str(error))
+                self.refresh()
+                text = None
+        if text is None:
+            self.on_change()
+            return
+        name = (self.editor.spec.name or "level").replace("/", "_")
+        self.send_download(f"{name}.kinetix.json" if format == "kinetix" else f"{name}.json", text.encode())
+
+    # ------------------------------------------------------------ editor -> widgets
+
+    @contextlib.contextmanager
+    def _quiet(self):
+        self._refreshing = True
+        try:
+            yield
+        finally:
+            self._refreshing = False
+
+    def refresh(self) -> None:
+        """Show the editor's current state: tool, selection properties, level settings, limits, message."""
+        ed = self.editor
+        with self._quiet():
+            self.tools.value = TOOL_LABELS[ed.tool]
+            self.tool_line.content = f"**Tool:** {ed.tool}" + (" — click vertices, Enter to finish"
+                                                                 if ed.tool in ("triangle", "polygon") else "")
+            self.message.content = f"⚠ {ed.message}" if ed.message else ""
+            self.limits_line.content = "**Left:** " + ", ".join(
+                f"{capacity - used} {kind}" for kind, (used, capacity) in ed.limits().items())
+            self.undo_button.disabled = not ed.can_undo
+            self.redo_button.disabled = not ed.can_redo
+            props = ed.properties()
+            self.gravity.value = tuple(float(g) for g in props["gravity"])
+            if props["size"] in SIZES:
+                self.size.value = props["size"]
+            self.snapping.value = ed.snapping
+            self.grid.value = ed.grid
+            self._show_selection(props)
+
+    def _show_selection(self, props: dict) -> None:
+        bodies, joints, thrusters = props["bodies"], props["joints"], props["thrusters"]
+        parts = [f"{len(v)} {k}" for k, v in (("bodies", bodies), ("joints", joints), ("thrusters", thrusters)) if v]
+        self.summary.content = ("Selected: " + ", ".join(parts) + (" (showing the first of each)" if any(
+            len(v) > 1 for v in (bodies, joints, thrusters)) else "")) if parts else "Nothing selected."
+        for widgets, items in ((self.body_widgets, bodies), (self.joint_widgets, joints),
+                               (self.thruster_widgets, thrusters)):
+            for w in widgets:
+                w.visible = bool(items)
+        if bodies:
+            b = bodies[0]
+            self.role.value = b["role"]
+            self.fixed.value = b["fixed"]
+            self.density.value = b["density"]
+            self.friction.value = b["friction"]
+            self.restitution.value = b["restitution"]
+            self.collision.value = COLLISION_MODES[b["collision_mode"]]
+        if joints:
+            j = joints[0]
+            self.joint_type.value = j["joint_type"]
+            self.motor_on.value = j["motor_on"]
+            self.motor_speed.value = j["motor_speed"]
+            self.motor_power.value = j["motor_power"]
+            self.motor_binding.value = MOTOR_BINDINGS[j["motor_binding"]]
+            self.limits_on.value = j["limits_on"]
+            self.limit_min.value = round(j["limit_min"], 3)
+            self.limit_max.value = round(j["limit_max"], 3)
+            for w in (self.motor_on, self.motor_speed, self.motor_power, self.motor_binding, self.limits_on,
+                      self.limit_min, self.limit_max):
+                w.disabled = j["joint_type"] == "fixed"
+        if thrusters:
+            t = thrusters[0]
+            self.thruster_power.value = t["thruster_power"]
+            self.thruster_direction.value = round(t["thruster_direction"], 3)
+            self.thruster_binding.value = THRUSTER_BINDINGS[t["thruster_binding"]]

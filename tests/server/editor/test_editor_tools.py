@@ -1,0 +1,191 @@
+"""Drawing tools, joints and thrusters, and the size-class refusals of the editor model."""
+
+import math
+
+import pytest
+
+from kinetix.formats import build
+from server.editor import Editor
+
+
+def drag(ed: Editor, a, b, **mods):
+    ed.pointer_down(*a, **mods)
+    ed.pointer_move((a[0] + b[0]) / 2, (a[1] + b[1]) / 2, **mods)
+    ed.pointer_move(*b, **mods)
+    return ed.pointer_up(*b, **mods)
+
+
+@pytest.fixture
+def ed() -> Editor:
+    editor = Editor(size="l")
+    editor.snapping = False
+    return editor
+
+
+def test_new_editor_is_walls_only(ed):
+    assert len(ed.spec.bodies) == 4 and all(b.fixed for b in ed.spec.bodies)
+    assert ed.limits() == {"polygons": (4, 12), "circles": (0, 4), "joints": (0, 6), "thrusters": (0, 2)}
+    assert not ed.can_undo
+
+
+def test_circle_press_centre_drag_radius(ed):
+    ed.set_tool("circle")
+    assert drag(ed, (1.0, 2.0), (1.3, 2.4)) is None
+    body = ed.spec.bodies[-1]
+    assert body.shape == "circle" and body.position == (1.0, 2.0)
+    assert body.radius == pytest.approx(0.5)
+    assert ed.selection == [("body", 4)]
+    assert ed.level_file().level.sim.bodies.active.sum() == 5
+
+
+def test_circle_preview_while_dragging(ed):
+    ed.set_tool("circle")
+    ed.pointer_down(1.0, 1.0)
+    ed.pointer_move(1.0, 1.6)
+    preview = ed.overlay().preview
+    assert preview == [{"kind": "circle", "center": (1.0, 1.0), "radius": pytest.approx(0.6)}]
+    ed.pointer_up(1.0, 1.6)
+    assert ed.overlay().preview == []
+
+
+def test_rectangle_drag_any_direction(ed):
+    ed.set_tool("rectangle")
+    drag(ed, (2.0, 2.0), (1.0, 1.5))
+    body = ed.spec.bodies[-1]
+    assert body.shape == "polygon"
+    assert body.position == pytest.approx((1.5, 1.75))
+    xs = sorted(v[0] for v in body.vertices)
+    ys = sorted(v[1] for v in body.vertices)
+    assert xs == pytest.approx([-0.5, -0.5, 0.5, 0.5]) and ys == pytest.approx([-0.25, -0.25, 0.25, 0.25])
+
+
+def test_triangle_closes_at_three_vertices(ed):
+    ed.set_tool("triangle")
+    assert ed.click(1.0, 1.0) is None
+    ed.click(2.0, 1.0)
+    assert len(ed.spec.bodies) == 4 and len(ed.overlay().preview) > 0
+    ed.click(1.5, 2.0)
+    body = ed.spec.bodies[-1]
+    assert body.shape == "polygon" and len(body.vertices) == 3
+    assert body.position == pytest.approx((1.5, 4 / 3))
+
+
+def test_polygon_closes_with_enter_or_first_vertex(ed):
+    ed.set_tool("polygon")
+    # clockwise clicks: stored counter-clockwise anyway
+    for p in [(1.0, 1.0), (1.0, 2.0), (2.0, 2.5), (3.0, 2.0), (3.0, 1.0)]:
+        ed.click(*p)
+    assert ed.key("Enter")
+    body = ed.spec.bodies[-1]
+    assert len(body.vertices) == 5
+    area = sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(body.vertices, body.vertices[1:] + body.vertices[:1],
+                                                        strict=True))
+    assert area > 0
+    for p in [(3.5, 3.0), (4.5, 3.0), (4.5, 4.0), (3.5, 3.0)]:
+        ed.click(*p)
+    assert len(ed.spec.bodies) == 6 and len(ed.spec.bodies[-1].vertices) == 3
+
+
+def test_non_convex_polygon_rejected(ed):
+    ed.set_tool("polygon")
+    for p in [(1.0, 1.0), (3.0, 1.0), (2.0, 1.5), (3.0, 3.0), (1.0, 3.0)]:
+        ed.click(*p)
+    assert ed.finish_polygon() == "polygon is not convex"
+    assert len(ed.spec.bodies) == 4 and not ed.can_undo
+    assert ed.overlay().message == "polygon is not convex"
+
+
+def test_polygon_vertex_limit(ed):
+    ed.set_tool("polygon")
+    centre, r = (2.5, 2.5), 1.0
+    for k in range(9):
+        angle = 2 * math.pi * k / 9
+        message = ed.click(centre[0] + r * math.cos(angle), centre[1] + r * math.sin(angle))
+    assert message is not None and "too many vertices" in message
+    ed.finish_polygon()
+    assert len(ed.spec.bodies[-1].vertices) == 8
+
+
+def make_pair(ed):
+    ed.set_tool("rectangle")
+    drag(ed, (1.0, 1.0), (2.0, 1.4))
+    ed.set_tool("circle")
+    drag(ed, (2.0, 1.2), (2.3, 1.2))
+
+
+@pytest.mark.parametrize("tool", ["revolute", "fixed"])
+def test_joint_where_two_bodies_overlap(ed, tool):
+    make_pair(ed)
+    ed.set_tool(tool)
+    assert ed.click(1.95, 1.2) is None
+    (joint,) = ed.spec.joints
+    assert (joint.a, joint.b) == (4, 5) and joint.fixed == (tool == "fixed")
+    assert joint.anchor_a == pytest.approx((0.45, 0.0)) and joint.anchor_b == pytest.approx((-0.05, 0.0))
+    build(ed.spec, ed.size)
+
+
+def test_joint_needs_two_bodies(ed):
+    make_pair(ed)
+    ed.set_tool("revolute")
+    message = ed.click(1.2, 1.2)
+    assert "two bodies" in message and ed.spec.joints == []
+
+
+def test_joint_to_a_wall_allowed(ed):
+    ed.set_tool("circle")
+    drag(ed, (2.5, 0.5), (2.5, 0.8))
+    ed.set_tool("revolute")
+    assert ed.click(2.5, 0.35) is None
+    assert (ed.spec.joints[0].a, ed.spec.joints[0].b) == (0, 4)
+
+
+def test_thruster_click_and_aim(ed):
+    make_pair(ed)
+    ed.set_tool("thruster")
+    drag(ed, (1.5, 1.2), (1.5, 0.5))
+    (thruster,) = ed.spec.thrusters
+    assert thruster.body == 4 and thruster.anchor == pytest.approx((0.0, 0.0))
+    assert thruster.angle == pytest.approx(-math.pi / 2)
+    assert ed.click(0.5, 4.0) is not None  # not on a body
+    assert len(ed.spec.thrusters) == 1
+
+
+def test_overflow_refused_with_message():
+    ed = Editor(size="s")
+    ed.snapping = False
+    ed.set_tool("circle")
+    assert ed.click(1.0, 2.0) is None
+    assert ed.click(2.0, 2.0) is None
+    assert ed.click(3.0, 2.0) == "no circle left: 2 of 2 used in size s"
+    assert ed.limits()["circles"] == (2, 2)
+    ed.set_tool("revolute")
+    ed.set_tool("rectangle")
+    ed.click(1.0, 3.5)
+    assert ed.click(3.0, 3.5) == "no polygon left: 5 of 5 used in size s"
+
+
+def test_joint_and_thruster_overflow():
+    ed = Editor(size="s")
+    ed.snapping = False
+    make_pair(ed)
+    ed.set_tool("revolute")
+    ed.click(1.95, 1.2)
+    assert ed.click(1.95, 1.2) == "no joint left: 1 of 1 used in size s"
+    ed.set_tool("thruster")
+    ed.click(1.5, 1.2)
+    assert ed.click(1.5, 1.2) == "no thruster left: 1 of 1 used in size s"
+
+
+def test_unknown_tool(ed):
+    from server.editor import EditorError
+    with pytest.raises(EditorError, match="unknown tool"):
+        ed.set_tool("laser")
+
+
+def test_revision_bumps(ed):
+    r = ed.revision
+    ed.set_tool("circle")
+    assert ed.revision > r
+    r = ed.revision
+    ed.click(1.0, 1.0)
+    assert ed.revision > r

@@ -12,6 +12,7 @@ While editing: only when the editor's revision, the canvas size or the message c
 
 from __future__ import annotations
 
+import collections
 import logging
 import secrets
 import threading
@@ -117,6 +118,7 @@ class Session:
         self._key_pending = False
         self._message: str | None = None
         self._pushed_key = None  # what the last edit-mode frame showed, to push only on change
+        self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
         self._view = draw.View(512, 512)
         self._build_gui()
         self._wire_pointer()
@@ -145,7 +147,7 @@ class Session:
         except ImportError:  # the panel lands with the editor branch; the session works without it
             return
         self.panel = EditorPanel(gui, self.editor, on_change=lambda: self.refresh(),
-                                 send_download=self._send_download)
+                                 send_download=self._send_download, lock=self.lock)
 
     def _send_download(self, filename: str, content: bytes) -> None:
         self.client.send_file_download(filename, content, save_immediately=True)
@@ -177,6 +179,7 @@ class Session:
         return self._view.to_world(float(u), float(v))
 
     def _edit_call(self, method: str, *args, **kwargs) -> None:
+        self.pointer_log.append(method)
         with self.lock:
             if self.mode != "edit" or self.closed:
                 return

@@ -47,14 +47,13 @@ def test_arrow_right_drives_the_motor_and_release_stops_it(browser, app):
         page.keyboard.press("Space")
         _wait(lambda: session.mode == "play")
         time.sleep(1.0)  # let the car settle on its wheels
-        lower = slice(300, 560)  # the ground and the car, away from the HUD text at the top
-        still = _pixels(tab.canvas_png())[lower]
+        still = _pixels(tab.canvas_png(300, 260))  # the ground and the car, away from the HUD text at the top
         page.keyboard.down("ArrowRight")
         _wait(lambda: "ArrowRight" in session.held)
         assert action_from_keys(session.held)[0] == 2  # motor binding 0 driven at -1
         time.sleep(1.0)
         assert session.mode == "play"
-        driven = _pixels(tab.canvas_png())[lower]
+        driven = _pixels(tab.canvas_png(300, 260))
         assert np.abs(driven - still).sum() > 10_000  # the car moved on the canvas
         page.keyboard.up("ArrowRight")
         _wait(lambda: not session.held)

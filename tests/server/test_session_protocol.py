@@ -185,7 +185,7 @@ def test_sessions_past_the_cap_get_a_clear_message(app, make_client):
     extra = make_client(app)
     message = extra.wait_for(lambda m: m["type"] == "GuiMarkdownMessage")
     assert "server is full" in message["props"]["_markdown"].lower()
-    assert len(app.manager.sessions) == app.manager.max_sessions
+    _wait(lambda: len(app.manager.sessions) == app.manager.max_sessions)
     assert len(app.manager.rejected) == 1
     # The tab past the cap also sees it on the canvas, and gets no session (no nonce for /keys).
     assert extra.wait_frame()[:2] == b"\xff\xd8"

@@ -51,10 +51,11 @@ def test_arrow_right_drives_the_motor_and_release_stops_it(browser, app):
         page.keyboard.down("ArrowRight")
         _wait(lambda: "ArrowRight" in session.held)
         assert action_from_keys(session.held)[0] == 2  # motor binding 0 driven at -1
-        time.sleep(1.0)
-        assert session.mode == "play"
-        driven = _pixels(tab.canvas_png(300, 260))
-        assert np.abs(driven - still).sum() > 10_000  # the car moved on the canvas
+        # The car moves on the canvas; on a loaded 2-core machine the browser can lag, so look for up to 20 s.
+        deadline = time.monotonic() + 20
+        while np.abs(_pixels(tab.canvas_png(300, 260)) - still).sum() <= 10_000:
+            assert time.monotonic() < deadline, "the frames did not change while ArrowRight was held"
+            time.sleep(0.5)
         page.keyboard.up("ArrowRight")
         _wait(lambda: not session.held)
         assert not action_from_keys(session.held).any()  # no key held: the motor is no longer driven

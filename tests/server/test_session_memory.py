@@ -44,4 +44,5 @@ def test_500_connect_disconnect_cycles_do_not_grow_memory():
         # Bounded growth: a leak of one session (GUI handles, editor, level arrays) per cycle would be far more.
         assert objects1 - objects0 < 20_000, (objects0, objects1)
         assert rss1 - rss0 < 40_000, (rss0, rss1)  # kB
-        print(f"500 cycles: RSS {rss0} -> {rss1} kB, objects {objects0} -> {objects1}, threads {threads0} -> {threads1}")
+        print(f"500 cycles: RSS {rss0} -> {rss1} kB, objects {objects0} -> {objects1}, "
+              f"threads {threads0} -> {threads1}")

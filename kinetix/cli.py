@@ -85,10 +85,23 @@ def _bench_env_arguments(parser: argparse.ArgumentParser) -> None:
                      level_help="measure this level file (either format) instead of the reference levels")
 
 
+def _bench_server_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print one JSON object per line")
+    parser.add_argument("--samples", type=positive_int, default=40, help="key presses for the latency (default: 40)")
+    parser.add_argument("--sessions", type=positive_int, default=8, help="concurrent playing sessions (default: 8)")
+    parser.add_argument("--seconds", type=float, default=5.0, help="seconds per fps measurement (default: 5)")
+    parser.add_argument("--chromium", default="/usr/bin/chromium", help="Chromium binary for the latency")
+
+
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8080, help="port to listen on (default: 8080)")
     parser.add_argument("--data", metavar="DIR", help="directory for saved levels and recordings")
+    parser.add_argument("--db", metavar="URL", help="PostgreSQL URL for the gallery (default: SQLite in --data)")
+    parser.add_argument("--max-sessions", type=positive_int, default=8,
+                        help="most browser tabs served at once; more get a 'server full' message (default: 8)")
+    parser.add_argument("--warm", type=comma_list(str, allowed={"s", "m", "l", "none"}), default=["s", "m", "l"],
+                        help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:
@@ -117,7 +130,13 @@ COMMANDS: list[Command] = [
         "kinetix.bench.env:run",
         _bench_env_arguments,
     ),
-    Command(("serve",), "start the browser editor and playground", "kinetix.cli:serve_placeholder", _serve_arguments),
+    Command(
+        ("bench", "server"),
+        "measure the browser server: draw time, key-to-frame latency in Chromium, fps and RSS with 8 sessions",
+        "server.bench:run",
+        _bench_server_arguments,
+    ),
+    Command(("serve",), "start the browser editor and playground", "server.app:serve", _serve_arguments),
     Command(
         ("validate",),
         "load level files and simulate them with random actions; exit status 1 if any fails",
@@ -133,18 +152,6 @@ COMMANDS: list[Command] = [
 ]
 
 GROUP_HELP = {("bench",): "measure performance"}
-
-
-def serve_placeholder(args: argparse.Namespace) -> int:
-    """Stands in for the web server until it exists: runs the engine demo when there is one."""
-    print("kinetix serve: the web server is not built yet.", file=sys.stderr)
-    try:
-        demo = _load("kinetix.demo:main")
-    except CommandUnavailable:
-        print("server not built yet (and no engine demo, kinetix.demo, to run instead)", file=sys.stderr)
-        return 2
-    print("Running the engine demo instead.", file=sys.stderr)
-    return demo() or 0
 
 
 def build_parser() -> argparse.ArgumentParser:

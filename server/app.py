@@ -1,0 +1,167 @@
+"""Startup: viser on an internal ephemeral port, the side server on the user's port, sessions, warm-up, Ctrl+C.
+
+    app = App(Config(port=0)).start()     # port 0: any free port (tests)
+    print(app.url)                        # the one URL to open
+    app.stop()
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def default_data_dir() -> Path:
+    if os.environ.get("KINETIX_DATA"):
+        return Path(os.environ["KINETIX_DATA"])
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "kinetix"
+
+
+@dataclasses.dataclass
+class Config:
+    host: str = "127.0.0.1"
+    port: int = 8080
+    data: Path | None = None
+    db: str | None = None
+    max_sessions: int = 8
+    warm_sizes: tuple[str, ...] = ("s", "m", "l")  # compile the play step for these before serving
+    gallery: bool = True  # include the gallery router when server.gallery is installed
+    level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
+    editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
+
+
+class App:
+    """The running server: a ViserServer, a SessionManager and the uvicorn side server in a thread."""
+
+    def __init__(self, config: Config):
+        self.config = config
+        self.viser = None
+        self.manager = None
+        self._uvicorn = None
+        self._thread: threading.Thread | None = None
+        self._socket: socket.socket | None = None
+
+    @property
+    def port(self) -> int:
+        return self._socket.getsockname()[1]
+
+    @property
+    def url(self) -> str:
+        host = self.config.host
+        shown = "127.0.0.1" if host in ("0.0.0.0", "") else f"[{host}]" if ":" in host else host
+        return f"http://{shown}:{self.port}/"
+
+    def start(self) -> App:
+        import uvicorn
+        import viser
+
+        from server import play
+        from server.http import create_app
+        from server.session import SessionManager
+
+        if self.config.max_sessions < 1:
+            raise ValueError(f"--max-sessions must be at least 1, got {self.config.max_sessions}")
+        # Bind the user's port first so a busy port fails loudly (viser would silently take the next one).
+        sock = socket.socket(socket.AF_INET6 if ":" in self.config.host else socket.AF_INET)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((self.config.host, self.config.port))
+        except OSError as error:
+            sock.close()
+            raise RuntimeError(f"cannot listen on {self.config.host}:{self.config.port}: {error.strerror}") from None
+        sock.listen(128)
+        self._socket = sock
+        for size in self.config.warm_sizes:
+            t0 = time.perf_counter()
+            play.warm_up((size,))
+            log.info("compiled the play step for size %s in %.1f s", size, time.perf_counter() - t0)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
+            self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
+        self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)
+        self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
+                                      editor_factory=self.config.editor_factory,
+                                      initial_level=self._initial_level())
+        app = create_app(self.manager, self.viser.get_port(), gallery_router=self._gallery_router())
+        config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
+        self._uvicorn = uvicorn.Server(config)
+        self._uvicorn.install_signal_handlers = lambda: None  # the main thread handles Ctrl+C
+        self._thread = threading.Thread(target=self._uvicorn.run, kwargs={"sockets": [sock]},
+                                        name="kinetix-http", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + 10
+        while not self._uvicorn.started and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if not self._uvicorn.started:
+            self.stop()
+            raise RuntimeError("the side server did not start")
+        return self
+
+    def _initial_level(self):
+        if not self.config.level:
+            return None
+        from kinetix.levels import load_level
+
+        level_file = load_level(self.config.level)  # a bad file fails at startup with a LevelError message
+        return lambda client: level_file
+
+    def _gallery_router(self):
+        """The gallery's API router (issue 5) when that package is installed, else None."""
+        if not self.config.gallery:
+            return None
+        try:
+            from server.gallery.api import make_router
+            from server.gallery.store import open_store
+        except ImportError:
+            return None
+        data = self.config.data or default_data_dir()
+        store = open_store(self.config.db or os.environ.get("KINETIX_DB") or data)
+        return make_router(store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
+
+    def stop(self) -> None:
+        if self.manager is not None:
+            self.manager.close_all()
+        if self._uvicorn is not None:
+            self._uvicorn.should_exit = True
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        if self.viser is not None:
+            with contextlib.redirect_stdout(io.StringIO()):
+                self.viser.stop()
+        if self._socket is not None:
+            self._socket.close()
+
+
+def serve(args) -> int:
+    """`kinetix serve`: start, print the URL, run until Ctrl+C (or SIGTERM), then shut down cleanly."""
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
+                    db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
+                    warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"))
+    print("Compiling the physics for play (once; cached for later runs)...", flush=True)
+    try:
+        app = App(config).start()
+    except (RuntimeError, ValueError) as error:
+        print(f"kinetix serve: {error}", flush=True)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print(f"Open {app.url}", flush=True)
+    try:
+        while not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    print("Shutting down...", flush=True)
+    app.stop()
+    return 0

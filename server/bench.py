@@ -1,0 +1,183 @@
+"""`kinetix bench server`: what a player feels, measured against a real server in this process.
+
+- draw_ms: server.draw frame time at 512x512 (mean over a project level, static layer cached as in play);
+- key-to-frame latency in headless Chromium (the apt chromium via playwright): from the keydown handler in the
+  page to the moment the message batch carrying the frame stepped with that key is applied in the page (the
+  server puts the key's sequence number in a hidden element in the same batch as the frame), p50 and p90;
+- key-to-wire latency: the same, ending when a headless protocol client receives that batch (server side only);
+- fps delivered to one tab and to each of 8 concurrent playing sessions, counted at the websocket by headless
+  protocol clients (browser tabs with software WebGL would measure the 2-core machine's CPU, not the server);
+- peak RSS of this process (the server) while 8 sessions play.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+LEVEL = Path(__file__).resolve().parents[1] / "levels" / "car_right.json"
+
+
+def _print(name: str, value: float, unit: str, as_json: bool, **extra) -> None:
+    if as_json:
+        print(json.dumps({"bench": "server", "metric": name, "value": round(value, 3), "unit": unit, **extra}))
+    else:
+        print(f"{name:<34} {value:>10.2f} {unit}")
+
+
+def _draw_ms(level_file) -> float:
+    from server.draw import View, draw_frame, scene_of
+
+    scene, view = scene_of(level_file.level), View(512, 512)
+    for _ in range(5):
+        draw_frame(scene, view, hud="PLAY")
+    t0 = time.perf_counter()
+    for _ in range(200):
+        draw_frame(scene, view, hud="PLAY  step 12  0.40 s")
+    return (time.perf_counter() - t0) / 200 * 1000
+
+
+# viser's client decodes message batches in a Web Worker and posts them to the page; timestamp each batch that
+# carries our hidden ack element (the key's sequence number, sent in the same batch as the frame it produced).
+ACK_SCRIPT = r"""
+window.__acks = [];
+const KinetixWorker = window.Worker;
+window.Worker = function (url, options) {
+  const worker = new KinetixWorker(url, options);
+  worker.addEventListener("message", (event) => {
+    const now = performance.now();
+    let text;
+    try {
+      text = JSON.stringify(event.data, (k, v) => (ArrayBuffer.isView(v) || v instanceof ArrayBuffer) ? undefined : v);
+    } catch (e) { return; }
+    const found = text && text.match(/kinetix-ack[^0-9]*data-seq=[^0-9]*([0-9]+)/g);
+    if (found) for (const f of found) window.__acks.push([+f.match(/([0-9]+)$/)[1], now]);
+  });
+  return worker;
+};
+"""
+
+
+def _latency(app, chromium: str, samples: int) -> list[float]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--use-gl=swiftshader"])
+        page = browser.new_page(viewport={"width": 640, "height": 480})
+        page.add_init_script(ACK_SCRIPT)
+        page.goto(app.url)
+        page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        page.mouse.click(320, 240)  # focus the canvas (a click on an empty canvas edits nothing with select)
+        page.keyboard.press("Space")
+        page.wait_for_timeout(500)
+        latencies = []
+        for i in range(samples):
+            key = "ArrowRight" if i % 2 == 0 else "ArrowLeft"
+            page.keyboard.down(key)
+            seq, t = page.evaluate("() => { const s = window.__kinetixKeys.sent; return [s[s.length-1].seq, "
+                                   "s[s.length-1].t]; }")
+            page.wait_for_function(f"window.__acks.some(a => a[0] >= {seq})", timeout=5000)
+            ack = page.evaluate(f"() => window.__acks.find(a => a[0] >= {seq})[1]")
+            latencies.append(ack - t)
+            page.keyboard.up(key)
+            page.wait_for_timeout(60)
+        page.keyboard.press("Space")
+        browser.close()
+    return latencies
+
+
+def _wire_latency(app, samples: int) -> list[float]:
+    """ms from sending a key on /keys to the frame batch carrying its ack arriving at a protocol client."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
+    from viser_client import KeysSocket, ViserTestClient, session_nonce
+
+    client = ViserTestClient(app.viser.get_port(), 640, 480)
+    keys = None
+    try:
+        client.wait_frame(timeout=30)
+        keys = KeysSocket(app.port, session_nonce(client))
+        keys.down("Space")
+        time.sleep(0.5)
+        latencies = []
+        for i in range(samples):
+            code = "ArrowRight" if i % 2 == 0 else "ArrowLeft"
+            start = client.count()
+            t0 = time.perf_counter()
+            seq = keys.down(code)
+            client.wait_for(lambda m: m["type"] == "GuiUpdateMessage" and f'data-seq="{seq}"' in str(m.get("updates")),
+                            timeout=5, start=start)
+            latencies.append((time.perf_counter() - t0) * 1000)
+            keys.up(code)
+            time.sleep(0.05)
+        keys.down("Space")
+        return latencies
+    finally:
+        if keys is not None:
+            keys.close()
+        client.close()
+        deadline = time.monotonic() + 10
+        while app.manager.sessions and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+
+def _fps(app, sessions: int, seconds: float) -> list[float]:
+    """Frames per second received by each of `sessions` protocol clients while all play."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
+    from viser_client import ViserTestClient  # the headless client of the protocol tests
+
+    clients = [ViserTestClient(app.viser.get_port(), 640, 480) for _ in range(sessions)]
+    try:
+        for client in clients:
+            client.wait_frame(timeout=30)
+        deadline = time.monotonic() + 30
+        while len(app.manager.sessions) < sessions and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for session in list(app.manager.sessions.values()):
+            session.play()
+        time.sleep(0.5)
+        starts = [client.count() for client in clients]
+        t0 = time.monotonic()
+        time.sleep(seconds)
+        elapsed = time.monotonic() - t0
+        return [len(client.frames(start)) / elapsed for client, start in zip(clients, starts, strict=True)]
+    finally:
+        for client in clients:
+            client.close()
+        deadline = time.monotonic() + 10
+        while app.manager.sessions and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+
+def run(args: argparse.Namespace) -> int:
+    from kinetix.levels import load_level
+    from server.app import App, Config
+
+    level_file = load_level(LEVEL)
+    _print("draw_ms_512", _draw_ms(level_file), "ms", args.json)
+    app = App(Config(port=0, max_sessions=args.sessions + 2, warm_sizes=(level_file.size.name,), level=str(LEVEL),
+                     gallery=False)).start()
+    try:
+        if Path(args.chromium).exists():
+            lat = sorted(_latency(app, args.chromium, args.samples))
+            _print("key_to_frame_p50", statistics.median(lat), "ms", args.json, samples=len(lat))
+            _print("key_to_frame_p90", lat[int(0.9 * (len(lat) - 1))], "ms", args.json, samples=len(lat))
+        else:
+            print(f"no chromium at {args.chromium}: latency not measured (run .ci/setup-chromium.sh)", file=sys.stderr)
+        wire = sorted(_wire_latency(app, args.samples))
+        _print("key_to_wire_p50", statistics.median(wire), "ms", args.json, samples=len(wire))
+        _print("key_to_wire_p90", wire[int(0.9 * (len(wire) - 1))], "ms", args.json, samples=len(wire))
+        one = _fps(app, 1, args.seconds)
+        _print("fps_one_session", one[0], "fps", args.json)
+        many = _fps(app, args.sessions, args.seconds)
+        _print(f"fps_{args.sessions}_sessions_min", min(many), "fps", args.json)
+        _print(f"fps_{args.sessions}_sessions_mean", statistics.mean(many), "fps", args.json)
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        _print(f"peak_rss_{args.sessions}_sessions", peak_mb, "MB", args.json)
+    finally:
+        app.stop()
+    return 0

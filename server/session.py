@@ -1,0 +1,534 @@
+"""One session per browser tab: its editor, play state, lock and play thread; and the manager that owns them.
+
+Threading: viser runs plain callbacks on a thread pool and they can overlap, so every entry point takes the
+session's lock. Key events arrive from the side server's event loop (`key_event`), update the held-key set
+and wake the play thread at once; the play thread steps and pushes a frame right away and then flushes, so
+a key reaches the wire within a few milliseconds instead of waiting for the next tick.
+
+Frames: rendered by server.draw at the canvas size (letterboxed, never stretched) and pushed as the scene
+background (JPEG). While playing: every agent step (30 per second for the default dt 1/60 and frame skip 2).
+While editing: only when the editor's revision, the canvas size or the message changes.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import secrets
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from server import draw
+from server.play import PLAY_KEYS, action_from_keys, stepper_for
+
+log = logging.getLogger(__name__)
+
+MAX_PIXELS = 1280 * 800  # larger canvases are rendered smaller at the same aspect ratio (the browser scales up)
+JPEG_QUALITY = 85
+RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke."}
+
+
+def default_editor_factory() -> Callable:
+    """server.editor.Editor (CONTRACT section 3); without that package, a play-only stand-in so serving still works."""
+    try:
+        from server.editor import Editor
+    except ImportError:
+        log.warning("server.editor is not installed: levels can be played but not edited")
+        return PlayOnlyEditor
+    return Editor
+
+
+class PlayOnlyEditor:
+    """The part of the Editor interface a session needs to show and play a level, with every edit refused."""
+
+    tool = "none"
+    selection: list = []
+
+    def __init__(self, level=None, size: str = "m"):
+        from kinetix.formats import describe
+        from kinetix.level import LevelFile, empty_level, size_class
+
+        if level is None:
+            level = LevelFile(empty_level(size_class(size)))
+        self._level_file = level if isinstance(level, LevelFile) else None
+        if self._level_file is None:
+            from kinetix.formats import build
+
+            self._level_file = build(level, size_class(size))
+        self.spec = describe(self._level_file.level, self._level_file.params)
+        self.size = self._level_file.size
+        self.revision = 0
+
+    def level_file(self):
+        return self._level_file
+
+    def overlay(self):
+        return None
+
+    def key(self, key: str, **mods) -> bool:
+        return False
+
+    def __getattr__(self, name: str):  # pointer_down, click, box_select, ...: no editing without the editor
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return lambda *args, **kwargs: "editing needs the server.editor package"
+
+
+def _set_background_jpeg(client, data: bytes, frame: np.ndarray) -> None:
+    """Queue an already encoded JPEG as the scene background.
+
+    Pillow encodes a frame about twice as fast as viser's imageio fallback (no OpenCV here), which matters with 8
+    sessions at 30 fps. viser 1.1.1 (pinned) has no public call for encoded bytes, so this queues the same message
+    set_background_image would, and falls back to the public call if viser's internals ever differ.
+    """
+    try:
+        from viser._messages import BackgroundImageMessage
+
+        queue = client.scene._websock_interface.queue_message
+    except (ImportError, AttributeError):
+        client.scene.set_background_image(frame, format="jpeg", jpeg_quality=JPEG_QUALITY)
+        return
+    queue(BackgroundImageMessage(format="jpeg", rgb_data=data, depth_data=None))
+
+
+class Session:
+    """One tab. Build with SessionManager; `client` is a viser ClientHandle (or a test double with .scene/.gui)."""
+
+    def __init__(self, client, manager: SessionManager, level=None, size: str = "m"):
+        editor_factory = manager.editor_factory or default_editor_factory()
+        self.client = client
+        self.manager = manager
+        self.nonce = secrets.token_urlsafe(16)
+        self.lock = threading.RLock()
+        self.editor = editor_factory(level, size=size)
+        self.mode = "edit"  # "edit" | "play" | "paused" | "ended"
+        self.held: set[str] = set()
+        self.closed = False
+        self.frames_sent = 0
+        self.last_key_seq = -1
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._play = None  # (stepper, state, params) while not editing
+        self._result: str | None = None
+        self._steps = 0
+        self._step_request = False
+        self._key_pending = False
+        self._message: str | None = None
+        self._pushed_key = None  # what the last edit-mode frame showed, to push only on change
+        self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
+        self._view = draw.View(512, 512)
+        self._build_gui()
+        self._wire_pointer()
+        self.refresh(force=True)
+
+    # ------------------------------------------------------------------ GUI and pointer wiring
+
+    def _build_gui(self) -> None:
+        gui = self.client.gui
+        gui.add_html(f'<div id="kinetix-session" data-nonce="{self.nonce}" hidden></div>')
+        self._ack = gui.add_html('<div id="kinetix-ack" data-seq="-1" hidden></div>')
+        with gui.add_folder("Play"):
+            self._play_button = gui.add_button("Play (Space)", icon=None)
+            self._pause_button = gui.add_button("Pause", disabled=True)
+            self._step_button = gui.add_button("Step", disabled=True)
+            self._again_button = gui.add_button("Play again", visible=False)
+            self._edit_button = gui.add_button("Edit", visible=False)
+        self._play_button.on_click(lambda _: self.toggle_play())
+        self._pause_button.on_click(lambda _: self.toggle_pause())
+        self._step_button.on_click(lambda _: self.single_step())
+        self._again_button.on_click(lambda _: self.play_again())
+        self._edit_button.on_click(lambda _: self.stop())
+        self.panel = None
+        try:
+            from server.editor import Editor
+            from server.editor.panel import EditorPanel
+        except ImportError:  # without the editor package the session plays levels only
+            return
+        if not isinstance(self.editor, Editor):  # a stand-in model (play-only, tests) has no panel
+            return
+        self.panel = EditorPanel(gui, self.editor, on_change=lambda: self.refresh(),
+                                 send_download=self._send_download, lock=self.lock)
+
+    def _send_download(self, filename: str, content: bytes) -> None:
+        self.client.send_file_download(filename, content, save_immediately=True)
+
+    def _wire_pointer(self) -> None:
+        # viser runs plain callbacks on a thread pool fire-and-forget, so a drag's start and update could run out
+        # of order; async callbacks run in arrival order on viser's event loop. They only do quick editor calls
+        # and an edit-mode render (a few ms).
+        async def on_click(event) -> None:
+            self._on_click(event)
+
+        async def on_rect_select(event) -> None:
+            self._on_rect_select(event)
+
+        async def on_drag(event) -> None:
+            self._on_drag(event)
+
+        scene = self.client.scene
+        scene.on_click()(on_click)
+        scene.on_rect_select(modifier="shift")(on_rect_select)
+        # An invisible sphere around the camera catches drags anywhere on the canvas (study section 2).
+        self._catcher = scene.add_icosphere("/kinetix/catcher", radius=200.0, color=(255, 255, 255), opacity=0.0,
+                                            side="double")
+        self._catcher.on_drag("left")(on_drag)
+        self.client.camera.on_update(lambda _: self.refresh())
+
+    def world(self, screen_pos) -> tuple[float, float]:
+        u, v = screen_pos
+        return self._view.to_world(float(u), float(v))
+
+    def _edit_call(self, method: str, *args, **kwargs) -> None:
+        self.pointer_log.append(method)
+        with self.lock:
+            if self.mode != "edit" or self.closed:
+                return
+            try:
+                message = getattr(self.editor, method)(*args, **kwargs)
+            except Exception:  # an editor bug must not kill the tab; it is logged and shown
+                log.exception("editor.%s failed", method)
+                message = f"internal error in {method}"
+            if isinstance(message, str):
+                self._message = message
+            if self.panel is not None and hasattr(self.panel, "refresh"):
+                self.panel.refresh()
+            self.refresh()
+
+    def _on_click(self, event) -> None:
+        x, y = self.world(event.screen_pos[0] if isinstance(event.screen_pos[0], list | tuple) else event.screen_pos)
+        self._edit_call("click", x, y)
+
+    def _on_rect_select(self, event) -> None:
+        x0, y0 = self.world(event.screen_min)
+        x1, y1 = self.world(event.screen_max)
+        self._edit_call("box_select", min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1), add=False)
+
+    def _on_drag(self, event) -> None:
+        mods = {"shift": event.modifier in ("shift", "shift+ctrl"), "ctrl": event.modifier in ("ctrl", "cmd/ctrl")}
+        if event.phase == "start":
+            self._edit_call("pointer_down", *self.world(event.start_screen_pos), **mods)
+            self._edit_call("pointer_move", *self.world(event.end_screen_pos), **mods)
+        elif event.phase == "update":
+            self._edit_call("pointer_move", *self.world(event.end_screen_pos), **mods)
+        else:
+            self._edit_call("pointer_up", *self.world(event.end_screen_pos), **mods)
+
+    # ------------------------------------------------------------------ keys (from the side server's /keys socket)
+
+    def key_event(self, kind: str, code: str, key: str = "", *, ctrl: bool = False, shift: bool = False,
+                  alt: bool = False, meta: bool = False, seq: int = -1) -> None:
+        """A keydown ("down") or keyup ("up") from keys.js. Play keys change the held set and wake the play loop."""
+        with self.lock:
+            if self.closed:
+                return
+            self.last_key_seq = max(self.last_key_seq, seq)
+            if kind == "down" and code == "Space" and not (ctrl or alt or meta):
+                self.toggle_play()
+                return
+            if self.mode == "edit":
+                if kind == "down" and key:
+                    self._edit_call("key", key, ctrl=ctrl, shift=shift, alt=alt, meta=meta)
+                self._push_ack(seq)
+                return
+            if code in PLAY_KEYS:
+                if kind == "down":
+                    self.held.add(code)
+                else:
+                    self.held.discard(code)
+                self._key_pending = True
+                self._wake.set()
+            elif kind == "down" and code == "Escape":
+                self.stop()
+
+    def release_all_keys(self) -> None:
+        with self.lock:
+            self.held.clear()
+            self._wake.set()
+
+    # ------------------------------------------------------------------ play control
+
+    def toggle_play(self) -> None:
+        with self.lock:
+            if self.mode == "edit":
+                self.play()
+            else:
+                self.stop()
+
+    def play(self) -> None:
+        """Start playing from the edited level (the editor itself is not changed by playing)."""
+        with self.lock:
+            if self.closed:
+                return
+            try:
+                level_file = self.editor.level_file()
+            except Exception as error:  # e.g. the level does not build; say why instead of playing
+                self._message = f"cannot play: {error}"
+                self.refresh(force=True)
+                return
+            stepper = stepper_for(level_file)
+            state, params = stepper.start(level_file)
+            self._play = (stepper, state, params)
+            self._steps, self._result, self._message = 0, None, None
+            self._step_request = False
+            self.mode = "play"
+            self._set_buttons()
+            self._start_thread()
+            self._wake.set()
+
+    def stop(self) -> None:
+        """Back to editing; the edited level is shown again as it was before playing."""
+        with self.lock:
+            if self.mode == "edit":
+                return
+            self.mode = "edit"
+            self._play = None
+            self.held.clear()
+            self._set_buttons()
+            self._wake.set()
+            self.refresh(force=True)
+
+    def play_again(self) -> None:
+        with self.lock:
+            self.stop()
+            self.play()
+
+    def toggle_pause(self) -> None:
+        with self.lock:
+            if self.mode == "play":
+                self.mode = "paused"
+            elif self.mode == "paused":
+                self.mode = "play"
+            self._set_buttons()
+            self._wake.set()
+
+    def single_step(self) -> None:
+        with self.lock:
+            if self.mode == "play":
+                self.mode = "paused"
+                self._set_buttons()
+            if self.mode == "paused":
+                self._step_request = True
+                self._wake.set()
+
+    def _set_buttons(self) -> None:
+        editing = self.mode == "edit"
+        self._play_button.label = "Play (Space)" if editing else "Stop (Space)"
+        self._pause_button.disabled = self.mode not in ("play", "paused")
+        self._pause_button.label = "Resume" if self.mode == "paused" else "Pause"
+        self._step_button.disabled = self.mode not in ("play", "paused")
+        self._again_button.visible = self._edit_button.visible = self.mode == "ended"
+
+    # ------------------------------------------------------------------ the play loop
+
+    def _start_thread(self) -> None:
+        if self._thread is None or not self._thread.is_alive():
+            self._thread = threading.Thread(target=self._loop, name=f"kinetix-play-{self.nonce[:6]}", daemon=True)
+            self._thread.start()
+
+    def _loop(self) -> None:
+        next_tick = time.perf_counter()
+        while True:
+            with self.lock:
+                if self.closed or self.mode == "edit":
+                    self._thread = None
+                    return
+                stepper, state, params = self._play
+                tick = float(params.sim.dt) * stepper.frame_skip
+                key_now = self._key_pending
+                due = time.perf_counter() >= next_tick
+                run = (self.mode == "play" and (due or key_now)) or (self.mode == "paused" and self._step_request)
+                self._key_pending = False
+                self._step_request = False
+                if run:
+                    self._advance(stepper, state, params, ack=key_now)
+                    # A fixed schedule (not "now + tick") so the work of a frame does not lower the frame rate;
+                    # after a stall (or a key-driven early step) the schedule restarts from now.
+                    now = time.perf_counter()
+                    next_tick = next_tick + tick if now - next_tick < tick else now + tick
+                elif key_now:
+                    self._push_frame(ack=True)
+            self._wake.wait(timeout=max(0.0, next_tick - time.perf_counter()) if self.mode == "play" else 0.5)
+            self._wake.clear()
+
+    def _advance(self, stepper, state, params, *, ack: bool) -> None:
+        state, result = stepper.step(state, action_from_keys(self.held), params)
+        self._play = (stepper, state, params)
+        self._steps = result.timestep
+        if result.terminated or result.truncated:
+            self._result = "solved" if result.solved else "failed" if result.failed else (
+                "truncated" if result.truncated else "nan")
+            self.mode = "ended"
+            self.held.clear()
+            self._set_buttons()
+        self._push_frame(ack=ack)
+
+    # ------------------------------------------------------------------ frames
+
+    def _canvas(self) -> draw.View:
+        cam = self.client.camera
+        try:
+            w, h = int(cam.image_width), int(cam.image_height)
+        except Exception:  # the camera is not known yet
+            w, h = 512, 512
+        w, h = max(w, 64), max(h, 64)
+        if w * h > MAX_PIXELS:
+            f = (MAX_PIXELS / (w * h)) ** 0.5
+            w, h = int(w * f), int(h * f)
+        return draw.View(w, h)
+
+    def hud(self) -> str:
+        if self.mode == "edit":
+            return f"EDIT  tool: {getattr(self.editor, 'tool', '?')}   Space: play"
+        stepper, state, params = self._play
+        seconds = self._steps * float(params.sim.dt) * stepper.frame_skip
+        held = " ".join(sorted(self.held))
+        return f"{self.mode.upper()}  step {self._steps}  {seconds:.2f} s  {held}"
+
+    def render(self) -> np.ndarray:
+        """The current frame as RGB (height, width, 3) uint8 at the canvas size."""
+        self._view = self._canvas()
+        if self.mode == "edit":
+            level = self.editor.level_file().level
+            overlay = self.editor.overlay()
+            message = getattr(overlay, "message", None) or self._message
+            return draw.draw_frame(draw.scene_of(level), self._view, overlay=overlay, hud=self.hud(), message=message)
+        stepper, state, params = self._play
+        banner = ""
+        if self.mode == "ended":
+            seconds = self._steps * float(params.sim.dt) * stepper.frame_skip
+            banner = f"{RESULT_TEXT[self._result]}\n{seconds:.2f} s, {self._steps} steps"
+        return draw.draw_frame(draw.scene_of(state.level), self._view, hud=self.hud(), banner=banner)
+
+    def refresh(self, force: bool = False) -> None:
+        """Push an edit-mode frame if anything visible changed (or `force`); play frames come from the loop."""
+        with self.lock:
+            if self.closed or self.mode != "edit":
+                return
+            key = (getattr(self.editor, "revision", None), self._canvas(), self._message)
+            if not force and key == self._pushed_key:
+                return
+            self._pushed_key = key
+            self._push_frame()
+
+    def _push_frame(self, ack: bool = False) -> None:
+        if self.closed:
+            return
+        try:
+            frame = self.render()
+        except Exception:
+            log.exception("render failed")
+            return
+        client = self.client
+        data = draw.encode_jpeg(frame, JPEG_QUALITY)
+        with client.atomic():
+            _set_background_jpeg(client, data, frame)
+            if ack:
+                self._ack.content = f'<div id="kinetix-ack" data-seq="{self.last_key_seq}" hidden></div>'
+        client.flush()
+        self.frames_sent += 1
+
+    def _push_ack(self, seq: int) -> None:
+        if seq >= 0:
+            self._ack.content = f'<div id="kinetix-ack" data-seq="{seq}" hidden></div>'
+
+    # ------------------------------------------------------------------ teardown
+
+    def close(self) -> None:
+        """Stop the play loop and drop references (the tab is gone)."""
+        with self.lock:
+            self.closed = True
+            self.mode = "edit"
+            self._play = None
+            self.held.clear()
+            self._wake.set()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=2.0)
+        self.panel = None
+        self.client = None
+
+
+class SessionManager:
+    """All sessions of one server: created on viser connect, removed on disconnect, capped at `max_sessions`."""
+
+    def __init__(self, server, *, max_sessions: int = 8, initial_level: Callable | None = None,
+                 editor_factory: Callable | None = None):
+        self.server = server
+        self.editor_factory = editor_factory  # (level, size=) -> Editor; default server.editor.Editor
+        # (session, "?level=...&mode=play") -> None: set by the gallery integration to open a level from the URL.
+        self.on_query: Callable[[Session, str], None] | None = None
+        self.max_sessions = max_sessions
+        self.initial_level = initial_level  # (client) -> LevelFile | None, e.g. from ?level= (gallery)
+        self._lock = threading.Lock()
+        self.sessions: dict[int, Session] = {}
+        self.by_nonce: dict[str, Session] = {}
+        self.rejected: set[int] = set()
+        self._starting = 0
+        self._gone: set[int] = set()
+        server.on_client_connect(self._connect)
+        server.on_client_disconnect(self._disconnect)
+
+    def _connect(self, client) -> None:
+        with self._lock:  # reserve the slot now: sessions take a moment to build and connects can overlap
+            full = len(self.sessions) + self._starting >= self.max_sessions
+            if full:
+                self.rejected.add(client.client_id)
+            else:
+                self._starting += 1
+        if full:
+            self._reject(client)
+            return
+        session = None
+        try:
+            level = self.initial_level(client) if self.initial_level else None
+            session = Session(client, self, level=level)
+        except Exception:
+            log.exception("could not start a session")
+            client.gui.add_markdown("**Could not start a session.** See the server log.")
+        finally:
+            with self._lock:
+                self._starting -= 1
+                gone = client.client_id in self._gone  # the tab closed while its session was being built
+                self._gone.discard(client.client_id)
+                if session is not None and not gone:
+                    self.sessions[client.client_id] = session
+                    self.by_nonce[session.nonce] = session
+            if session is not None and gone:
+                session.close()
+
+    def _reject(self, client) -> None:
+        text = (f"**The server is full**: it allows {self.max_sessions} open tabs at a time. "
+                "Close another tab (or start the server with a larger `--max-sessions`) and reload this page.")
+        client.gui.add_markdown(text)
+        client.add_notification("Server full", text.replace("**", ""), with_close_button=False, color="red")
+        view = draw.View(640, 360)
+        frame = draw.draw_frame(None, view, banner=f"Server full ({self.max_sessions} tabs)\nclose a tab and reload",
+                                legend=False)
+        client.scene.set_background_image(frame, format="jpeg")
+
+    def _disconnect(self, client) -> None:
+        with self._lock:
+            was_rejected = client.client_id in self.rejected
+            self.rejected.discard(client.client_id)
+            session = self.sessions.pop(client.client_id, None)
+            if session is not None:
+                self.by_nonce.pop(session.nonce, None)
+            elif self._starting and not was_rejected:
+                self._gone.add(client.client_id)
+        if session is not None:
+            session.close()
+
+    def session_by_nonce(self, nonce: str) -> Session | None:
+        with self._lock:
+            return self.by_nonce.get(nonce)
+
+    def close_all(self) -> None:
+        with self._lock:
+            sessions = list(self.sessions.values())
+            self.sessions.clear()
+            self.by_nonce.clear()
+        for session in sessions:
+            session.close()

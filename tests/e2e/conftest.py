@@ -1,0 +1,92 @@
+"""Browser end-to-end tests: the real server in this process and the apt Chromium driven by playwright.
+
+Skipped when Chromium or playwright is missing, unless CI=true (then they fail: CI must run them).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from urllib.parse import urlparse
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "server"))  # the protocol helpers
+
+CHROMIUM = os.environ.get("KINETIX_CHROMIUM", "/usr/bin/chromium")
+LEVELS = Path(__file__).resolve().parents[2] / "levels"
+
+
+def _missing() -> str | None:
+    if not Path(CHROMIUM).exists():
+        return f"no Chromium at {CHROMIUM} (run .ci/setup-chromium.sh)"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "the playwright package is not installed (pip install -e .[dev])"
+    return None
+
+
+@pytest.fixture(scope="session")
+def browser():
+    reason = _missing()
+    if reason:
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"CI=true but {reason}")
+        pytest.skip(reason)
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--use-gl=swiftshader"])
+        yield browser
+        browser.close()
+
+
+class Tab:
+    """A page on the server that records every request, to check all traffic stays on 127.0.0.1."""
+
+    def __init__(self, browser, app, width: int = 800, height: int = 600):
+        self.app = app
+        self.context = browser.new_context(viewport={"width": width, "height": height}, accept_downloads=True)
+        self.page = self.context.new_page()
+        self.requests: list[str] = []
+        self.page.on("request", lambda request: self.requests.append(request.url))
+        self.page.on("websocket", lambda ws: self.requests.append(ws.url))
+        self.page.goto(app.url)
+        self.page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        nonce = self.page.get_attribute("#kinetix-session", "data-nonce")
+        self.session = app.manager.session_by_nonce(nonce)
+        assert self.session is not None
+
+    def xy(self, x: float, y: float) -> tuple[float, float]:
+        """Page pixel of world point (x, y): the frame is letterboxed into the full-window canvas."""
+        from server.draw import View
+
+        size = self.page.viewport_size
+        u, v = View(size["width"], size["height"]).to_screen(x, y)
+        return u * size["width"], v * size["height"]
+
+    def drag(self, a: tuple[float, float], b: tuple[float, float], steps: int = 6) -> None:
+        """A left-button drag between two world points."""
+        (x0, y0), (x1, y1) = self.xy(*a), self.xy(*b)
+        self.page.mouse.move(x0, y0)
+        self.page.mouse.down()
+        for i in range(1, steps + 1):
+            self.page.mouse.move(x0 + (x1 - x0) * i / steps, y0 + (y1 - y0) * i / steps)
+            self.page.wait_for_timeout(40)
+        self.page.mouse.up()
+
+    def canvas_png(self, top: int = 0, height: int | None = None, width: int | None = None) -> bytes:
+        """A screenshot of a band of the page (the canvas fills it); a page clip does not wait for the WebGL
+        canvas to be "stable", which it never is while frames stream in."""
+        size = self.page.viewport_size
+        clip = {"x": 0, "y": top, "width": width or size["width"], "height": height or size["height"] - top}
+        return self.page.screenshot(clip=clip, timeout=60_000)
+
+    def assert_local_only(self) -> None:
+        hosts = {urlparse(url).hostname for url in self.requests if not url.startswith(("blob:", "data:"))}
+        assert hosts == {"127.0.0.1"}, self.requests
+
+    def close(self) -> None:
+        self.context.close()

@@ -1,0 +1,129 @@
+"""In real headless Chromium with the real editor: draw, join, play; undo and redo; export and re-import."""
+
+from __future__ import annotations
+
+import io
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from server.play import action_from_keys
+from tests.e2e.conftest import LEVELS, Tab
+from tests.server.conftest import running_app
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def app():
+    with running_app(warm_sizes=("m",)) as app:
+        yield app
+
+
+@pytest.fixture(scope="module")
+def car_app():
+    with running_app(warm_sizes=(), level=str(LEVELS / "car_right.json")) as app:
+        yield app
+
+
+def _wait(predicate, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached"
+        time.sleep(0.02)
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+
+
+def test_draw_rectangle_and_circle_join_with_a_motor_and_play(browser, app):
+    tab = Tab(browser, app, 1280, 800)  # the panel floats on the right; the left half of the world stays clear
+    try:
+        page, session = tab.page, tab.session
+        editor = session.editor
+        bodies = len(editor.spec.bodies)
+        page.get_by_role("button", name="Rect", exact=True).click()
+        _wait(lambda: editor.tool == "rectangle")
+        tab.drag((1.0, 1.0), (2.0, 1.4))
+        _wait(lambda: len(editor.spec.bodies) == bodies + 1)
+        page.get_by_role("button", name="Circle", exact=True).click()
+        _wait(lambda: editor.tool == "circle")
+        tab.drag((2.0, 1.2), (2.3, 1.2))
+        _wait(lambda: len(editor.spec.bodies) == bodies + 2)
+        assert {b.shape for b in editor.spec.bodies[bodies:]} == {"polygon", "circle"}
+        page.get_by_role("button", name="Hinge", exact=True).click()
+        _wait(lambda: editor.tool == "revolute")
+        page.mouse.click(*tab.xy(1.9, 1.2))  # inside both the rectangle and the circle
+        _wait(lambda: len(editor.spec.joints) == 1)
+        page.get_by_text("Motor on", exact=True).click()
+        _wait(lambda: editor.spec.joints[0].motor_on)
+        assert editor.spec.joints[0].motor_binding == 0  # Left/Right
+
+        page.mouse.click(*tab.xy(3.0, 4.0))  # focus the canvas (an empty spot; the hinge tool just says so)
+        page.keyboard.press("Space")
+        _wait(lambda: session.mode == "play")
+        time.sleep(1.5)  # the assembly falls and settles on the floor
+        still = _pixels(tab.canvas_png(500, 260, 800))
+        page.keyboard.down("ArrowRight")
+        _wait(lambda: "ArrowRight" in session.held)
+        assert action_from_keys(session.held)[0] == 2
+        # The car moves on the canvas; on a loaded 2-core machine the browser can lag, so look for up to 20 s.
+        deadline = time.monotonic() + 20
+        while np.abs(_pixels(tab.canvas_png(500, 260, 800)) - still).sum() <= 10_000:
+            assert time.monotonic() < deadline, "the frames did not change while ArrowRight was held"
+            time.sleep(0.5)
+        page.keyboard.up("ArrowRight")
+        _wait(lambda: not session.held)
+        assert not action_from_keys(session.held).any()  # released: the motor binding is no longer driven
+        page.keyboard.press("Space")
+        _wait(lambda: session.mode == "edit")
+        assert len(editor.spec.bodies) == bodies + 2 and editor.spec.bodies[-1].position == pytest.approx((2.0, 1.2))
+        tab.assert_local_only()
+    finally:
+        tab.close()
+
+
+def test_undo_and_redo(browser, car_app):
+    tab = Tab(browser, car_app)
+    try:
+        editor = tab.session.editor
+        bodies = len(editor.spec.bodies)
+        body = next(b for b in editor.spec.bodies if not b.fixed)  # a moving body (the walls are fixed)
+        tab.page.mouse.click(*tab.xy(*body.position))
+        _wait(lambda: editor.selection)
+        tab.page.keyboard.press("Delete")
+        _wait(lambda: len(editor.spec.bodies) < bodies)
+        deleted = len(editor.spec.bodies)
+        tab.page.keyboard.press("Control+z")
+        _wait(lambda: len(editor.spec.bodies) == bodies)
+        tab.page.keyboard.press("Control+Shift+z")
+        _wait(lambda: len(editor.spec.bodies) == deleted)
+        tab.page.get_by_role("button", name="Undo", exact=True).click()  # the panel's button does the same
+        _wait(lambda: len(editor.spec.bodies) == bodies)
+        tab.assert_local_only()
+    finally:
+        tab.close()
+
+
+def test_export_and_reimport_give_the_same_level(browser, car_app, tmp_path):
+    tab = Tab(browser, car_app)
+    try:
+        editor, page = tab.session.editor, tab.page
+        original = editor.export("ours")
+        with page.expect_download() as download:
+            page.get_by_role("button", name="Download (our format)", exact=True).click()
+        saved = tmp_path / "exported.json"
+        download.value.save_as(saved)
+        assert saved.read_text() == original
+        page.get_by_role("button", name="New level", exact=True).click()
+        _wait(lambda: editor.export("ours") != original)
+        with page.expect_file_chooser() as chooser:
+            page.get_by_role("button", name="Upload level", exact=True).click()
+        chooser.value.set_files(str(saved))
+        _wait(lambda: editor.export("ours") == original)
+        tab.assert_local_only()
+    finally:
+        tab.close()

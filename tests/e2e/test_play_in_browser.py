@@ -1,0 +1,66 @@
+"""In real headless Chromium: keyboard play through keys.js and /keys, frames on the viser canvas."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from server.play import action_from_keys
+from tests.e2e.conftest import LEVELS, Tab
+from tests.server.conftest import running_app
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def app(tmp_path_factory):
+    # The car level with a long episode, so slow software-GL screenshots cannot outlast it.
+    doc = json.loads((LEVELS / "car_right.json").read_text())
+    doc["env"]["max_timesteps"] = 5000
+    level = tmp_path_factory.mktemp("levels") / "car_long.json"
+    level.write_text(json.dumps(doc))
+    with running_app(warm_sizes=("m",), level=str(level)) as app:
+        yield app
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+
+
+def _wait(predicate, timeout=15.0):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached"
+        time.sleep(0.02)
+
+
+def test_arrow_right_drives_the_motor_and_release_stops_it(browser, app):
+    tab = Tab(browser, app)
+    try:
+        page, session = tab.page, tab.session
+        page.mouse.click(400, 300)  # focus the page
+        page.keyboard.press("Space")
+        _wait(lambda: session.mode == "play")
+        time.sleep(1.0)  # let the car settle on its wheels
+        still = _pixels(tab.canvas_png(300, 260))  # the ground and the car, away from the HUD text at the top
+        page.keyboard.down("ArrowRight")
+        _wait(lambda: "ArrowRight" in session.held)
+        assert action_from_keys(session.held)[0] == 2  # motor binding 0 driven at -1
+        # The car moves on the canvas; on a loaded 2-core machine the browser can lag, so look for up to 20 s.
+        deadline = time.monotonic() + 20
+        while np.abs(_pixels(tab.canvas_png(300, 260)) - still).sum() <= 10_000:
+            assert time.monotonic() < deadline, "the frames did not change while ArrowRight was held"
+            time.sleep(0.5)
+        page.keyboard.up("ArrowRight")
+        _wait(lambda: not session.held)
+        assert not action_from_keys(session.held).any()  # no key held: the motor is no longer driven
+        page.keyboard.press("Space")
+        _wait(lambda: session.mode == "edit")
+        tab.assert_local_only()
+    finally:
+        tab.close()

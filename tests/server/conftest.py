@@ -1,0 +1,41 @@
+"""One server per test module (compiled once), driven by the headless viser client in viser_client.py."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))  # viser_client, fake_editor
+
+LEVELS = Path(__file__).resolve().parents[2] / "levels"
+
+
+@contextlib.contextmanager
+def running_app(**config):
+    from server.app import App, Config
+
+    app = App(Config(port=0, gallery=False, **config)).start()
+    try:
+        yield app
+    finally:
+        app.stop()
+
+
+@pytest.fixture
+def make_client():
+    """Clients opened through this fixture are closed before the server stops (viser waits for open sockets)."""
+    from viser_client import ViserTestClient
+
+    clients = []
+
+    def make(app, width=640, height=480):
+        client = ViserTestClient(app.viser.get_port(), width, height)
+        clients.append(client)
+        return client
+
+    yield make
+    for client in clients:
+        client.close()

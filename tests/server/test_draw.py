@@ -1,0 +1,60 @@
+"""The human-facing renderer: letterboxed mapping, role colours, anti-aliasing, markers and the overlay."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fake_editor import FakeOverlay, falling_win_spec
+
+from kinetix.formats import JointSpec, build
+from server.draw import ROLE, View, draw_frame, scene_of
+
+
+def test_view_letterboxes_and_round_trips():
+    view = View(800, 600)
+    assert view.scale == 120.0 and view.origin == (100.0, 0.0)
+    assert view.to_world(0.5, 0.5) == pytest.approx((2.5, 2.5))
+    for x, y in [(0.0, 0.0), (5.0, 5.0), (1.25, 3.5)]:
+        assert view.to_world(*view.to_screen(x, y)) == pytest.approx((x, y))
+
+
+@pytest.fixture(scope="module")
+def level():
+    return build(falling_win_spec(), None).level
+
+
+def test_bodies_have_role_colours_and_anti_aliased_edges(level):
+    view = View(500, 500)
+    frame = draw_frame(scene_of(level), view, legend=False)
+    assert frame.shape == (500, 500, 3) and frame.dtype == np.uint8
+    cx, cy = (round(c) for c in view.to_pixel(2.5, 1.6))
+    assert frame[cy + 10, cx].tolist() == list(ROLE[1])  # inside the green ball (below its rotation line)
+    assert frame[cy, cx + 5].tolist() != list(ROLE[1])  # the rotation line shows the circle's angle
+    # Along a row through the ball there are blended pixels between green and the background.
+    row = frame[cy, cx: cx + 40].astype(int)
+    blended = [p for p in row if 0 < p[1] < 204 and p.tolist() not in ([20, 20, 20],)]
+    assert len({tuple(p) for p in row}) > 3 and blended
+
+
+def test_overlay_hud_and_banner_change_the_frame(level):
+    view = View(400, 300)
+    base = draw_frame(scene_of(level), view)
+    overlay = FakeOverlay(preview=[{"kind": "circle", "center": (1.0, 4.0), "radius": 0.5}],
+                          guides=[(0.0, 2.0, 5.0, 2.0)], message="polygon is not convex")
+    with_overlay = draw_frame(scene_of(level), view, overlay=overlay)
+    px, py = (round(c) for c in view.to_pixel(1.0, 4.5))
+    assert (with_overlay[py - 2: py + 3, px] != base[py - 2: py + 3, px]).any()
+    assert (draw_frame(scene_of(level), view, hud="PLAY step 3") != base).any()
+    assert (draw_frame(scene_of(level), view, banner="You won!") != base).any()
+
+
+def test_motor_joints_get_a_key_legend():
+    spec = falling_win_spec()
+    spec.bodies[-1].fixed = False
+    spec.joints.append(JointSpec(path="j", a=4, b=5, anchor_a=(0.0, -0.2), anchor_b=(0.0, 0.2), motor_on=True,
+                                 motor_binding=1))
+    level = build(spec, None).level
+    view = View(400, 400)
+    with_legend = draw_frame(scene_of(level), view)
+    without = draw_frame(scene_of(level), view, legend=False)
+    assert (with_legend[20:60, :150] != without[20:60, :150]).any()

@@ -1,0 +1,49 @@
+"""`kinetix serve` as a user runs it: prints one URL, serves the page there, and exits cleanly on Ctrl+C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_serve_prints_the_url_and_stops_on_ctrl_c():
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--warm", "none"], cwd=ROOT,
+                               env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in process.stdout:
+            lines.append(line)
+            if line.startswith("Open "):
+                break
+        url = lines[-1].split()[-1]
+        assert url.startswith("http://127.0.0.1:") and url.endswith("/"), lines
+        assert sum("http" in line for line in lines) == 1  # one URL only (viser's internal one is not shown)
+        assert "keys.js" in urllib.request.urlopen(url, timeout=10).read().decode()
+        process.send_signal(signal.SIGINT)
+        rest = process.communicate(timeout=30)[0]
+        assert process.returncode == 0, rest
+        assert "Shutting down" in rest
+    finally:
+        if process.poll() is None:
+            process.kill()
+
+
+def test_serve_refuses_a_busy_port():
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        result = subprocess.run([sys.executable, "-m", "kinetix", "serve", "--port", str(port), "--warm", "none"],
+                                cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True,
+                                timeout=60)
+    assert result.returncode == 2
+    assert f"cannot listen on 127.0.0.1:{port}" in result.stdout

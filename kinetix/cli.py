@@ -92,6 +92,38 @@ def _convert_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", choices=["s", "m", "l"], help="size class to write (default: the input's)")
 
 
+def _play_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--agent", required=True, metavar="DIR|noop|random|general",
+                        help="who plays: noop, random, general or a checkpoint directory")
+    parser.add_argument("--level", required=True, metavar="FILE", help="level file (either format)")
+    parser.add_argument("--record", required=True, metavar="OUT.mcap", help="recording to write (atomically)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the reset and the policy (default: 0)")
+    parser.add_argument("--max-steps", type=positive_int, help="stop after this many steps (default: the level's)")
+
+
+def _replay_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="FILE", help="an .mcap recording")
+    parser.add_argument("--gif", metavar="OUT.gif", help="also write the re-simulated play as a GIF")
+    parser.add_argument("--mp4", metavar="OUT.mp4", help="also write an MP4 (needs imageio-ffmpeg)")
+    parser.add_argument("--resolution", type=positive_int, default=256, help="video size in pixels (default: 256)")
+
+
+def _export_demos_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--in", dest="inputs", nargs="+", required=True, metavar="DIR_OR_FILE",
+                        help="recordings (.mcap files, or directories searched for them)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
+    parser.add_argument("--size", choices=["s", "m", "l"], help="size class of the observations (default: largest)")
+    parser.add_argument("--solved-only", action="store_true", help="keep only recordings that solve their level")
+    parser.add_argument("--obs", choices=["entity", "flat", "pixels"], default="flat", help="observation type")
+    parser.add_argument("--shard-steps", type=positive_int, default=100_000, help="steps per .npz shard")
+
+
+def _bench_record_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--level", default="levels/car_ramp.json", metavar="FILE", help="level to play")
+    parser.add_argument("--frames", type=positive_int, default=300, help="frames to measure (default: 300)")
+    parser.add_argument("--fps", type=float, default=30.0, help="session frame rate (default: 30)")
+
+
 COMMANDS: list[Command] = [
     Command(
         ("bench", "engine"),
@@ -112,6 +144,14 @@ COMMANDS: list[Command] = [
         "kinetix.convert:run",
         _convert_arguments,
     ),
+    Command(("play",), "play a level with an agent and record the episode to an MCAP file",
+            "kinetix.recording.play:run_play", _play_arguments),
+    Command(("replay",), "re-simulate a recording, check it bitwise and optionally write a GIF or MP4",
+            "kinetix.recording.play:run_replay", _replay_arguments),
+    Command(("export-demos",), "turn recordings into a demonstration dataset (.npz shards and a manifest)",
+            "kinetix.recording.demos:run", _export_demos_arguments),
+    Command(("bench", "record"), "measure what recording adds per frame to a session-like loop",
+            "kinetix.bench.record:run", _bench_record_arguments),
 ]
 
 GROUP_HELP = {("bench",): "measure performance"}

@@ -9,6 +9,7 @@ exception) deletes the temporary file.
 
 from __future__ import annotations
 
+import atexit
 import base64
 import dataclasses
 import io
@@ -18,6 +19,7 @@ import queue
 import tempfile
 import threading
 import time
+import weakref
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,15 @@ from kinetix.recording import schema
 from kinetix.recording.errors import RecordingError
 
 _CLOSE, _ABORT = object(), object()
+_OPEN: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def _abort_open_recorders() -> None:
+    # A program that exits without close() (an uncaught exception) must not leave a half file, and must stop the
+    # writer thread before the interpreter tears down the modules it uses.
+    for recorder in list(_OPEN):
+        recorder.abort()
 
 
 def project_version() -> str:
@@ -148,6 +159,7 @@ class Recorder:
         self._chunk_size = chunk_size
         self._thread = threading.Thread(target=self._run, name=f"recorder {self.path.name}", daemon=True)
         self._thread.start()
+        _OPEN.add(self)
 
     # ------------------------------------------------------------ caller side (cheap, never waits)
 
@@ -180,6 +192,7 @@ class Recorder:
         if self._closed:
             return self.path
         self._closed = True
+        _OPEN.discard(self)
         self._queue.put(_CLOSE)
         self._thread.join()
         if self._error is not None:
@@ -196,6 +209,7 @@ class Recorder:
         if self._closed:
             return
         self._closed = True
+        _OPEN.discard(self)
         self._queue.put(_ABORT)
         self._thread.join()
         self._tmp.unlink(missing_ok=True)

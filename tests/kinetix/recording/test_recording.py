@@ -242,3 +242,50 @@ def test_export_demos_entity_observations(recorded, tmp_path):
     data = np.load(tmp_path / "e" / manifest["shards"][0]["file"])
     names = {k for k in data.files if k.startswith("obs_")}
     assert names and all(data[k].shape[0] == manifest["steps"] for k in names)
+
+
+def test_cli_replay_exit_codes(recorded, tmp_path, capsys):
+    from kinetix.cli import main
+
+    assert main(["replay", str(recorded["unicycle"]), "--gif", str(tmp_path / "u.gif"), "--resolution", "64"]) == 0
+    assert "matches" in capsys.readouterr().out
+    from PIL import Image
+
+    with Image.open(tmp_path / "u.gif") as gif:
+        assert gif.n_frames > 1 and gif.size == (64, 64)
+    # states that were never simulated (the level standing still while the actions say otherwise) diverge
+    level = load_level(ROOT / "levels" / "unicycle.json")
+    fake = tmp_path / "fake.mcap"
+    with Recorder(fake, level, metadata={}) as recorder:
+        for _ in range(5):
+            recorder.add_step(np.array([1, 0, 0, 0, 0, 0], np.int32), 0.0, False, False, level.level)
+    assert main(["replay", str(fake)]) == 1
+    assert "diverges at step 0" in capsys.readouterr().out
+    (tmp_path / "text.mcap").write_text("hello")
+    assert main(["replay", str(tmp_path / "text.mcap")]) == 2
+    assert "not an MCAP file" in capsys.readouterr().err
+
+
+def test_cli_play_records_noop(tmp_path, capsys):
+    from kinetix.cli import main
+
+    out = tmp_path / "noop.mcap"
+    assert main(["play", "--agent", "noop", "--level", str(ROOT / "levels" / "thrust_hop.json"), "--record", str(out),
+                 "--max-steps", "12", "--seed", "4"]) == 0
+    recording = read_recording(out)
+    assert recording.num_steps == 12 and not recording.actions.any() and recording.metadata["seed"] == "4"
+    assert main(["play", "--agent", "noop", "--level", str(tmp_path / "missing.json"), "--record",
+                 str(tmp_path / "x.mcap")]) == 2
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_exact_replay_on_shared_kinetix_levels(shared_dir, tmp_path):
+    """Public Kinetix levels with joints and thrusters (one per size class) replay bitwise."""
+    for i, name in enumerate(["s/h1_thrust_over_ball.json", "m/h3_car_thrust.json", "l/hard_cartpole_thrust.json"]):
+        path = shared_dir / "kinetix-levels" / name
+        if not path.is_file():
+            pytest.skip(f"{path} missing")
+        out = tmp_path / f"{i}.mcap"
+        play_episode("random", load_level(path), out, seed=i, max_steps=40, frames=False)
+        check = verify(read_recording(out))
+        assert check.ok, f"{name}: {check.detail}"

@@ -73,6 +73,15 @@ class TrainConfig:
     def num_updates(self) -> int:
         return max(1, math.ceil(self.total_timesteps / self.batch_size))
 
+    @property
+    def num_chunks(self) -> int:
+        """Jitted chunks of `updates_per_call` updates that `kinetix train` runs (rounding the updates up)."""
+        return math.ceil(self.num_updates / self.updates_per_call)
+
+    @property
+    def planned_steps(self) -> int:
+        return self.num_chunks * self.updates_per_call * self.batch_size
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)

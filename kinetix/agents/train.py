@@ -19,6 +19,7 @@ import dataclasses
 import json
 import os
 import shlex
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -132,8 +133,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     history: list[dict] = []
     start = time.perf_counter()
     stopped = False
-    chunks = -(-config.num_updates // config.updates_per_call)
-    for _ in range(chunks):
+    for _ in range(config.num_chunks):
         if should_stop is not None and should_stop():
             stopped = True
             break
@@ -142,7 +142,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         elapsed = time.perf_counter() - start
         for i in range(config.updates_per_call):
             m = {k: float(v[i]) for k, v in metrics.items()}
-            m["total_steps"] = config.num_updates * config.batch_size
+            m["total_steps"] = config.planned_steps
             m["steps_per_second"] = m["env_steps"] / elapsed
             m["elapsed"] = elapsed
             history.append(m)
@@ -174,21 +174,30 @@ def run(args: argparse.Namespace) -> int:
     observation = args.observation or args.network
     out = Path(args.out) if args.out else Path("runs") / f"{Path(args.level).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     # smoothing=0: the rate and ETA average over the whole run (updates arrive in chunks, compile time included)
-    bar = tqdm(total=None, unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0, file=sys.stderr)
+    total = dataclasses.replace(config, total_timesteps=args.steps).planned_steps
+    bar = tqdm(total=total, unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0, file=sys.stderr)
 
     def progress(m: dict) -> None:
-        if bar.total is None:
-            bar.reset(total=int(m["total_steps"]))
         bar.update(int(m["env_steps"]) - bar.n)
         bar.set_postfix(ret=f"{m['mean_return']:.2f}", solve=f"{m['solve_rate']:.2f}",
                         sps=f"{m['steps_per_second']:.0f}")
 
     command = "kinetix " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.record_command else None
+    # The first Ctrl+C (or SIGTERM) stops after the current chunk and still writes everything; a second one aborts.
+    interrupted = []
+
+    def stop_gracefully(signum, frame):
+        if interrupted:
+            raise KeyboardInterrupt
+        interrupted.append(signum)
+        print("\nkinetix train: stopping after this chunk (again to abort without writing)", file=sys.stderr)
+
+    previous = {sig: signal.signal(sig, stop_gracefully) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         summary = train_agent(args.level, out, steps=args.steps, curriculum=args.curriculum, init=args.init,
                               seed=args.seed, config=config, observation=observation,
                               dense_reward=args.dense_reward, shard=not args.no_shard, progress=progress,
-                              command=command)
+                              should_stop=lambda: bool(interrupted), command=command)
     except (LevelError, CheckpointError, ValueError) as error:
         bar.close()
         print(f"kinetix train: {error}", file=sys.stderr)
@@ -197,6 +206,9 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         print("kinetix train: interrupted; nothing written", file=sys.stderr)
         return 130
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     bar.close()
     last = summary["metrics"][-1] if summary["metrics"] else {}
     print(f"wrote {out}/checkpoint, metrics.json and curve.png: {summary['steps']:.0f} steps in "

@@ -37,12 +37,15 @@ NEG = -1e9  # score of an empty buffer slot
 
 @dataclasses.dataclass(frozen=True)
 class CurriculumConfig:
-    buffer_size: int = 256
+    """Defaults sized for a 2-core machine: an sfl refresh rolls out candidates * attempts whole episodes
+    (128 * 4 * 256 steps, about one update's worth of env steps per 50 updates of 2048)."""
+
+    buffer_size: int = 64
     replay_prob: float = 0.8
     # sfl
-    candidates: int = 512
+    candidates: int = 128
     attempts: int = 4
-    refresh_every: int = 20
+    refresh_every: int = 50
     # plr
     temperature: float = 0.3
 

@@ -150,7 +150,19 @@ COMMANDS: list[Command] = [
     ),
 ]
 
+def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print results as JSON lines")
+    parser.add_argument("--sizes", type=comma_list(str, allowed={"s", "m", "l"}), default=["s", "m", "l"],
+                        help="size classes to measure, comma-separated (default: s,m,l)")
+    parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
+    parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")
+    parser.add_argument("--updates-per-call", type=positive_int, default=4, help="updates per chunk (default: 4)")
+    parser.add_argument("--chunks", type=positive_int, default=3, help="timed chunks after the first (default: 3)")
+
+
 COMMANDS += [
+    Command(("bench", "train"), "measure PPO training throughput (env steps/s including updates) per size class",
+            "kinetix.agents.bench:run", _bench_train_arguments),
     Command(("train",), "train a PPO agent on a level, a directory of levels or random levels",
             "kinetix.agents.train:run", _train_arguments),
     Command(("eval",), "solve rate of an agent over 20 attempts per level", "kinetix.agents.evaluate:run",

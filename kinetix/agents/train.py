@@ -107,10 +107,10 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         raise CheckpointError(f"--init {init} fits size {ckpt.env['size']} only, the levels are {env.config.size.name}")
 
     sharder = None
-    if shard and jax.local_device_count() > 1:
+    if shard and jax.device_count() > 1:
         from kinetix.agents.sharding import batch_sharder, local_mesh
 
-        sharder = batch_sharder(local_mesh(), config.num_envs)
+        sharder = batch_sharder(local_mesh(jax.devices()), config.num_envs)  # all processes' devices
 
     network_holder = {}
 

@@ -86,13 +86,16 @@ def _keep_ids(state, key, feedback: Feedback):
 
 
 def fixed(levels: Level) -> Curriculum:
-    """Uniformly one of `levels` (a stacked Level, leading axis) every episode; ids are -2 (untracked)."""
+    """Uniformly one of `levels` (a stacked Level, leading axis) every episode; ids are -2 (untracked).
+
+    The levels are the curriculum's state, not constants of the compiled program, so training on another level
+    of the same size class reuses the compiled update (and JAX's persistent cache)."""
     count = levels.sim.bodies.active.shape[0]
 
     def sample(key, state, n):
-        return _take(levels, jax.random.randint(key, (n,), 0, count)), jnp.full((n,), -2, jnp.int32)
+        return _take(state, jax.random.randint(key, (n,), 0, count)), jnp.full((n,), -2, jnp.int32)
 
-    return Curriculum(lambda key: (), sample, lambda key, state, feedback: _keep_ids(state, key, feedback))
+    return Curriculum(lambda key: levels, sample, lambda key, state, feedback: _keep_ids(state, key, feedback))
 
 
 def domain_randomisation(generator: Callable[[jax.Array], Level]) -> Curriculum:

@@ -166,6 +166,7 @@ class Runner:
     env_level_ids: jax.Array
     env_levels: Any  # initial scene of each env's current level (for plr)
     curriculum: Any
+    env_params: EnvParams  # an argument of the compiled update, not a constant: one program serves many levels
     key: jax.Array
     update_index: jax.Array
 
@@ -211,7 +212,7 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
             params = network.init(k_net, jax.tree.map(lambda x: x[:1], obs))["params"]
         train_state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
         return Runner(train_state, place(state), place(obs), place(jnp.zeros((E,), jnp.float32)), place(ids),
-                      place(levels), cstate, k_run, jnp.asarray(0, jnp.int32))
+                      place(levels), cstate, jax.tree.map(jnp.asarray, env_params), k_run, jnp.asarray(0, jnp.int32))
 
     def update(runner: Runner) -> tuple[Runner, dict]:
         key, k_pool, k_roll, k_upd, k_cur = jax.random.split(runner.key, 5)
@@ -227,7 +228,7 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
             outputs, value = network.apply({"params": params}, obs)
             action = distributions.sample(k_act, outputs, action_type)
             log_prob = distributions.log_prob(outputs, action, action_type)
-            next_state, reward, terminated, truncated, info = transition(state, action, env_params)
+            next_state, reward, terminated, truncated, info = transition(state, action, runner.env_params)
             final_obs = observe(next_state)
             _, bootstrap_value = network.apply({"params": params}, final_obs)
             done = terminated | truncated
@@ -257,7 +258,7 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
                        mean_reward=batch.reward.mean())
         if callback is not None:
             jax.debug.callback(lambda m: callback({k: float(v) for k, v in m.items()}), metrics, ordered=True)
-        runner = Runner(train_state, env_state, obs, ep_return, env_ids, env_levels, cstate, key,
+        runner = Runner(train_state, env_state, obs, ep_return, env_ids, env_levels, cstate, runner.env_params, key,
                         runner.update_index + 1)
         return runner, metrics
 

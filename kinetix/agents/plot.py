@@ -10,6 +10,17 @@ from PIL import Image, ImageDraw
 COLOURS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189))
 
 
+def moving_average(values: list[float], window: int) -> list[float]:
+    """Trailing mean over up to `window` values (shorter at the start)."""
+    out, total = [], 0.0
+    for i, v in enumerate(values):
+        total += v
+        if i >= window:
+            total -= values[i - window]
+        out.append(total / min(i + 1, window))
+    return out
+
+
 def _panel(draw: ImageDraw.ImageDraw, box: tuple[int, int, int, int], title: str,
            series: Sequence[tuple[str, Sequence[float], Sequence[float]]], y_range: tuple[float, float] | None) -> None:
     x0, y0, x1, y1 = box
@@ -35,12 +46,16 @@ def _panel(draw: ImageDraw.ImageDraw, box: tuple[int, int, int, int], title: str
         draw.text((x0 + 4, sy(y) - 6), f"{y:.2f}", fill=(0, 0, 0))
         draw.line((left, sy(y), right, sy(y)), fill=(220, 220, 220))
         x = xmin + frac * (xmax - xmin)
-        draw.text((sx(x) - 20, bottom + 6), f"{x:,.0f}", fill=(0, 0, 0))
+        draw.text((min(sx(x) - 20, right - 60), bottom + 6), f"{x:,.0f}", fill=(0, 0, 0))
     for i, (label, xs, ys) in enumerate(series):
         colour = COLOURS[i % len(COLOURS)]
         points = [(sx(x), sy(y)) for x, y in zip(xs, ys, strict=True)]
         if len(points) > 1:
-            draw.line(points, fill=colour, width=2)
+            # raw per-update values faintly, a moving average (about 1/25 of the run) on top
+            faint = tuple(255 - (255 - c) // 4 for c in colour)
+            draw.line(points, fill=faint, width=1)
+            smooth = moving_average(list(ys), max(1, len(ys) // 25))
+            draw.line([(sx(x), sy(y)) for x, y in zip(xs, smooth, strict=True)], fill=colour, width=2)
         elif points:
             draw.ellipse((points[0][0] - 2, points[0][1] - 2, points[0][0] + 2, points[0][1] + 2), fill=colour)
         draw.text((right - 150, top + 6 + 14 * i), label, fill=colour)

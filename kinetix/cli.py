@@ -124,6 +124,42 @@ def _bench_record_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=30.0, help="session frame rate (default: 30)")
 
 
+def _train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--level", required=True, metavar="FILE|DIR|random-s|random-m|random-l",
+                        help="a level file, a directory of level files, or random levels of a size class")
+    parser.add_argument("--steps", type=positive_int, default=1_000_000, help="env steps to train (default: 1000000)")
+    parser.add_argument("--out", metavar="DIR", help="output directory (default: runs/<level>-<time>)")
+    parser.add_argument("--curriculum", choices=["dr", "sfl", "plr"],
+                        help="for random levels: domain randomisation (default), sampling for learnability, "
+                             "prioritized level replay")
+    parser.add_argument("--init", metavar="general|DIR", help="fine-tune this agent instead of starting from scratch")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
+    parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length per update (default: 64)")
+    parser.add_argument("--updates-per-call", type=positive_int, default=4,
+                        help="updates per jitted chunk between progress reports (default: 4)")
+    parser.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate (default: 3e-4)")
+    parser.add_argument("--network", choices=["entity", "flat", "pixels"], default="entity",
+                        help="policy network (default: entity, permutation-invariant)")
+    parser.add_argument("--observation", choices=["entity", "flat", "pixels"], default=None,
+                        help="observation type (default: the network's)")
+    parser.add_argument("--dense-reward", type=float, default=None,
+                        help="shaping scale (default: the level's; 0.1 on random levels)")
+    parser.add_argument("--no-shard", action="store_true", help="do not split the env batch over local devices")
+    parser.add_argument("--record-command", action="store_true", default=True, help=argparse.SUPPRESS)
+
+
+def _eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--agent", required=True, metavar="DIR|noop|random|general",
+                        help="a checkpoint directory, noop, random or general")
+    parser.add_argument("--level", required=True, action="append", metavar="FILE|DIR",
+                        help="a level file or a directory of level files (repeatable)")
+    parser.add_argument("--attempts", type=positive_int, default=20, help="episodes per level (default: 20)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--deterministic", action="store_true", help="take the most likely action (default: sample)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object per level")
+
+
 COMMANDS: list[Command] = [
     Command(
         ("bench", "engine"),
@@ -152,6 +188,26 @@ COMMANDS: list[Command] = [
             "kinetix.recording.demos:run", _export_demos_arguments),
     Command(("bench", "record"), "measure what recording adds per frame to a session-like loop",
             "kinetix.bench.record:run", _bench_record_arguments),
+]
+
+
+def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print results as JSON lines")
+    parser.add_argument("--sizes", type=comma_list(str, allowed={"s", "m", "l"}), default=["s", "m", "l"],
+                        help="size classes to measure, comma-separated (default: s,m,l)")
+    parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
+    parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")
+    parser.add_argument("--updates-per-call", type=positive_int, default=4, help="updates per chunk (default: 4)")
+    parser.add_argument("--chunks", type=positive_int, default=3, help="timed chunks after the first (default: 3)")
+
+
+COMMANDS += [
+    Command(("bench", "train"), "measure PPO training throughput (env steps/s including updates) per size class",
+            "kinetix.agents.bench:run", _bench_train_arguments),
+    Command(("train",), "train a PPO agent on a level, a directory of levels or random levels",
+            "kinetix.agents.train:run", _train_arguments),
+    Command(("eval",), "solve rate of an agent over 20 attempts per level", "kinetix.agents.evaluate:run",
+            _eval_arguments),
 ]
 
 GROUP_HELP = {("bench",): "measure performance"}

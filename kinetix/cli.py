@@ -118,6 +118,15 @@ def _export_demos_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard-steps", type=positive_int, default=100_000, help="steps per .npz shard")
 
 
+def _train_bc_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, metavar="DIR", help="a dataset from kinetix export-demos")
+    parser.add_argument("--out", required=True, metavar="DIR", help="checkpoint directory to write")
+    parser.add_argument("--epochs", type=positive_int, default=20, help="passes over the data (default: 20)")
+    parser.add_argument("--batch-size", type=positive_int, default=256, help="minibatch size (default: 256)")
+    parser.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate (default: 3e-4)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+
+
 def _bench_record_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--level", default="levels/car_ramp.json", metavar="FILE", help="level to play")
     parser.add_argument("--frames", type=positive_int, default=300, help="frames to measure (default: 300)")
@@ -186,6 +195,8 @@ COMMANDS: list[Command] = [
             "kinetix.recording.play:run_replay", _replay_arguments),
     Command(("export-demos",), "turn recordings into a demonstration dataset (.npz shards and a manifest)",
             "kinetix.recording.demos:run", _export_demos_arguments),
+    Command(("train-bc",), "behaviour cloning with the PPO network on an export-demos dataset",
+            "kinetix.recording.bc:run", _train_bc_arguments),
     Command(("bench", "record"), "measure what recording adds per frame to a session-like loop",
             "kinetix.bench.record:run", _bench_record_arguments),
 ]

@@ -155,6 +155,7 @@ def _write(recordings, tmp: Path, target, obs: str, shard_steps: int, skipped: l
     if not episodes:
         raise RecordingError("no recording fits the requested size class")
     manifest = {"version": MANIFEST_VERSION, "observation": obs, "size": target.name,
+                "frame_skip": int(recordings[0][1].env["frame_skip"]),
                 "action_type": recordings[0][1].env["action"], "steps": sum(e["steps"] for e in episodes),
                 "episodes": episodes, "shards": shards, "skipped": skipped}
     (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")

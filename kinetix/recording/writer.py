@@ -31,6 +31,7 @@ from kinetix.recording import schema
 from kinetix.recording.errors import RecordingError
 
 _CLOSE, _ABORT = object(), object()
+_BURST_SECONDS = 0.1
 _OPEN: weakref.WeakSet = weakref.WeakSet()
 
 
@@ -254,6 +255,9 @@ class Recorder:
             writer.add_attachment(self._start_ns, self._start_ns, schema.LEVEL_ATTACHMENT, "application/x-npz",
                                   self._level_npz)
             while True:
+                if self._queue.empty():
+                    # Work in bursts: waking on every put would take the GIL from the caller 30+ times a second.
+                    time.sleep(_BURST_SECONDS)
                 item = self._queue.get()
                 if item is _ABORT:
                     aborted = True

@@ -289,3 +289,22 @@ def test_exact_replay_on_shared_kinetix_levels(shared_dir, tmp_path):
         play_episode("random", load_level(path), out, seed=i, max_steps=40, frames=False)
         check = verify(read_recording(out))
         assert check.ok, f"{name}: {check.detail}"
+
+
+def test_train_bc_writes_a_loadable_agent(recorded, tmp_path):
+    pytest.importorskip("optax")
+    from kinetix.agents import load_policy
+    from kinetix.recording.bc import train_bc
+
+    level = load_level(ROOT / "levels" / "car_ramp.json")
+    play_episode("noop", level, tmp_path / "noop.mcap", max_steps=64, frames=False)
+    export_demos([str(tmp_path / "noop.mcap")], tmp_path / "demos", obs="flat", log=lambda *_: None)
+    result = train_bc(tmp_path / "demos", tmp_path / "agent", epochs=30, batch_size=16, lr=3e-3, log=lambda *_: None)
+    # the untrained policy picks the whole demonstrated action with probability (1/3)^4 (1/2)^2 < 1 %
+    assert result["accuracy"] > 0.9
+    env = make_env(EnvConfig(size=level.size, observation="flat", frame_skip=level.params.frame_skip), level)
+    policy = load_policy(str(tmp_path / "agent"), env)
+    obs, _ = env.reset(jax.random.PRNGKey(0))
+    actions = [np.asarray(policy.act(jax.random.PRNGKey(i), obs)[0]) for i in range(5)]
+    assert all(env.action_space.contains(a) for a in actions)
+    assert sum(not a.any() for a in actions) >= 3  # it learned to do nothing, as demonstrated

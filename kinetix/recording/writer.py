@@ -139,6 +139,7 @@ class Recorder:
         self._steps = 0
         self._closed = False
         self._error: BaseException | None = None
+        self.writer_cpu_seconds = 0.0
         self._summary = {"steps": 0, "return": 0.0, "solved": False, "failed": False, "episodes": 0, "frames": 0}
         self._meta = {
             "format_version": schema.FORMAT_VERSION,
@@ -240,6 +241,7 @@ class Recorder:
 
     def _run(self) -> None:
         aborted = False
+        cpu0 = time.thread_time()
         try:
             writer = Writer(self._file, chunk_size=self._chunk_size, compression=CompressionType.ZSTD)
             writer.start(profile=schema.PROFILE, library=f"kinetix-playground {self._meta['project_version']}")
@@ -281,6 +283,7 @@ class Recorder:
                     break
         finally:
             self._file.close()
+            self.writer_cpu_seconds = time.thread_time() - cpu0  # what recording cost the machine, for benchmarks
 
     def _write_step(self, writer: Writer, ids: dict, t: float, action, reward, terminated, truncated, state) -> None:
         index = self._summary["steps"]

@@ -14,8 +14,16 @@ The file layout is described in kinetix.recording.schema.
 
 from kinetix.recording.errors import RecordingError
 from kinetix.recording.reader import Recording, read_recording
-from kinetix.recording.replay import ReplayCheck, make_env, replay_frames, replay_states, step_function, verify
+from kinetix.recording.replay import (
+    ReplayCheck,
+    make_env,
+    recorded_level,
+    replay_frames,
+    replay_states,
+    step_function,
+    verify,
+)
 from kinetix.recording.writer import Recorder
 
 __all__ = ["Recorder", "Recording", "RecordingError", "ReplayCheck", "make_env", "read_recording", "replay_frames",
-           "replay_states", "step_function", "verify"]
+           "recorded_level", "replay_states", "step_function", "verify"]

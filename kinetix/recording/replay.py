@@ -152,3 +152,26 @@ def write_mp4(recording: Recording, path, resolution: int = 256, fps: float = 30
             count += 1
     os.replace(tmp, path)
     return count
+
+
+def recorded_level(recording: Recording, step: int):
+    """The Level as recorded after `step` (-1: the start), without re-simulating: the initial level with the
+    recorded position, rotation and velocities of its bodies. Cheap enough for scrubbing a timeline; render it
+    with kinetix.render.render_pixels."""
+    import jax.numpy as jnp
+
+    level = recording.level_file.level
+    if step < 0:
+        return level
+    if step >= recording.num_steps:
+        raise IndexError(f"step {step} is past the recording's {recording.num_steps} steps")
+    b = recording.bodies
+    bodies = level.sim.bodies
+    bodies = dataclasses.replace(
+        bodies,
+        position=jnp.asarray(bodies.position).at[b].set(recording.position[step]),
+        angle=jnp.asarray(bodies.angle).at[b].set(recording.rotation[step]),
+        velocity=jnp.asarray(bodies.velocity).at[b].set(recording.velocity[step]),
+        angular_velocity=jnp.asarray(bodies.angular_velocity).at[b].set(recording.angular_velocity[step]),
+    )
+    return dataclasses.replace(level, sim=dataclasses.replace(level.sim, bodies=bodies))

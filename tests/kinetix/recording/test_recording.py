@@ -308,3 +308,16 @@ def test_train_bc_writes_a_loadable_agent(recorded, tmp_path):
     actions = [np.asarray(policy.act(jax.random.PRNGKey(i), obs)[0]) for i in range(5)]
     assert all(env.action_space.contains(a) for a in actions)
     assert sum(not a.any() for a in actions) >= 3  # it learned to do nothing, as demonstrated
+
+
+def test_recorded_level_matches_the_replayed_scene(recorded):
+    from kinetix.recording import recorded_level, replay_states
+
+    recording = read_recording(recorded["car_ramp"], frames=False)
+    states = {i: state for i, state, _ in replay_states(recording)}
+    for i in (0, recording.num_steps // 2, recording.num_steps - 1):
+        got, want = recorded_level(recording, i).sim.bodies, states[i].level.sim.bodies
+        assert np.array_equal(np.asarray(got.position), np.asarray(want.position))
+        assert np.array_equal(np.asarray(got.angle), np.asarray(want.angle))
+    with pytest.raises(IndexError):
+        recorded_level(recording, recording.num_steps)

@@ -23,7 +23,7 @@ from kinetix.recording.replay import (
     step_function,
     verify,
 )
-from kinetix.recording.writer import Recorder
+from kinetix.recording.writer import Recorder, remove_partial_files
 
 __all__ = ["Recorder", "Recording", "RecordingError", "ReplayCheck", "make_env", "read_recording", "replay_frames",
-           "recorded_level", "replay_states", "step_function", "verify"]
+           "recorded_level", "remove_partial_files", "replay_states", "step_function", "verify"]

@@ -313,3 +313,18 @@ class Recorder:
                    "frame_id": schema.FRAME_ID, "format": "jpeg", "data": base64.b64encode(jpeg).decode()}
         writer.add_message(ids[schema.TOPIC_CAMERA], log, schema.dumps(message), log, sequence=self._summary["frames"])
         self._summary["frames"] += 1
+
+
+def remove_partial_files(directory: str | os.PathLike, older_than: float = 3600.0) -> list[Path]:
+    """Delete the hidden `.NAME.*.part` files that recordings of a killed process left in `directory` (only those
+    older than `older_than` seconds, so a live recorder's file is kept). For the server to call at start-up."""
+    removed = []
+    now = time.time()
+    for path in Path(directory).glob(".*.mcap.*.part"):
+        try:
+            if now - path.stat().st_mtime >= older_than:
+                path.unlink()
+                removed.append(path)
+        except FileNotFoundError:
+            pass
+    return removed

@@ -196,6 +196,13 @@ def test_crash_leaves_no_file_at_the_target(tmp_path, how):
                             capture_output=True, timeout=120)
     assert result.returncode == (-signal.SIGKILL if how == "kill" else 3), result.stderr.decode()
     assert not target.exists()
+    from kinetix.recording import remove_partial_files
+
+    leftovers = list(tmp_path.iterdir())
+    assert all(p.name.startswith(".crash.mcap.") and p.suffix == ".part" for p in leftovers)
+    assert remove_partial_files(tmp_path, older_than=3600) == []  # too fresh: could belong to a live recorder
+    assert sorted(remove_partial_files(tmp_path, older_than=0)) == sorted(leftovers)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_bad_recorder_arguments(tmp_path):

@@ -117,6 +117,83 @@ def _convert_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", choices=["s", "m", "l"], help="size class to write (default: the input's)")
 
 
+def _play_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--agent", required=True, metavar="DIR|noop|random|general",
+                        help="who plays: noop, random, general or a checkpoint directory")
+    parser.add_argument("--level", required=True, metavar="FILE", help="level file (either format)")
+    parser.add_argument("--record", required=True, metavar="OUT.mcap", help="recording to write (atomically)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the reset and the policy (default: 0)")
+    parser.add_argument("--max-steps", type=positive_int, help="stop after this many steps (default: the level's)")
+
+
+def _replay_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="FILE", help="an .mcap recording")
+    parser.add_argument("--gif", metavar="OUT.gif", help="also write the re-simulated play as a GIF")
+    parser.add_argument("--mp4", metavar="OUT.mp4", help="also write an MP4 (needs imageio-ffmpeg)")
+    parser.add_argument("--resolution", type=positive_int, default=256, help="video size in pixels (default: 256)")
+
+
+def _export_demos_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--in", dest="inputs", nargs="+", required=True, metavar="DIR_OR_FILE",
+                        help="recordings (.mcap files, or directories searched for them)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
+    parser.add_argument("--size", choices=["s", "m", "l"], help="size class of the observations (default: largest)")
+    parser.add_argument("--solved-only", action="store_true", help="keep only recordings that solve their level")
+    parser.add_argument("--obs", choices=["entity", "flat", "pixels"], default="flat", help="observation type")
+    parser.add_argument("--shard-steps", type=positive_int, default=100_000, help="steps per .npz shard")
+
+
+def _train_bc_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, metavar="DIR", help="a dataset from kinetix export-demos")
+    parser.add_argument("--out", required=True, metavar="DIR", help="checkpoint directory to write")
+    parser.add_argument("--epochs", type=positive_int, default=20, help="passes over the data (default: 20)")
+    parser.add_argument("--batch-size", type=positive_int, default=256, help="minibatch size (default: 256)")
+    parser.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate (default: 3e-4)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+
+
+def _bench_record_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--level", default="levels/car_ramp.json", metavar="FILE", help="level to play")
+    parser.add_argument("--frames", type=positive_int, default=300, help="frames to measure (default: 300)")
+    parser.add_argument("--fps", type=float, default=30.0, help="session frame rate (default: 30)")
+
+
+def _train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--level", required=True, metavar="FILE|DIR|random-s|random-m|random-l",
+                        help="a level file, a directory of level files, or random levels of a size class")
+    parser.add_argument("--steps", type=positive_int, default=1_000_000, help="env steps to train (default: 1000000)")
+    parser.add_argument("--out", metavar="DIR", help="output directory (default: runs/<level>-<time>)")
+    parser.add_argument("--curriculum", choices=["dr", "sfl", "plr"],
+                        help="for random levels: domain randomisation (default), sampling for learnability, "
+                             "prioritized level replay")
+    parser.add_argument("--init", metavar="general|DIR", help="fine-tune this agent instead of starting from scratch")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
+    parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length per update (default: 64)")
+    parser.add_argument("--updates-per-call", type=positive_int, default=4,
+                        help="updates per jitted chunk between progress reports (default: 4)")
+    parser.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate (default: 3e-4)")
+    parser.add_argument("--network", choices=["entity", "flat", "pixels"], default="entity",
+                        help="policy network (default: entity, permutation-invariant)")
+    parser.add_argument("--observation", choices=["entity", "flat", "pixels"], default=None,
+                        help="observation type (default: the network's)")
+    parser.add_argument("--dense-reward", type=float, default=None,
+                        help="shaping scale (default: the level's; 0.1 on random levels)")
+    parser.add_argument("--no-shard", action="store_true", help="do not split the env batch over local devices")
+    parser.add_argument("--record-command", action="store_true", default=True, help=argparse.SUPPRESS)
+
+
+def _eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--agent", required=True, metavar="DIR|noop|random|general",
+                        help="a checkpoint directory, noop, random or general")
+    parser.add_argument("--level", required=True, action="append", metavar="FILE|DIR",
+                        help="a level file or a directory of level files (repeatable)")
+    parser.add_argument("--attempts", type=positive_int, default=20, help="episodes per level (default: 20)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--deterministic", action="store_true", help="take the most likely action (default: sample)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object per level")
+
+
 COMMANDS: list[Command] = [
     Command(
         ("bench", "engine"),
@@ -149,6 +226,36 @@ COMMANDS: list[Command] = [
         "kinetix.convert:run",
         _convert_arguments,
     ),
+    Command(("play",), "play a level with an agent and record the episode to an MCAP file",
+            "kinetix.recording.play:run_play", _play_arguments),
+    Command(("replay",), "re-simulate a recording, check it bitwise and optionally write a GIF or MP4",
+            "kinetix.recording.play:run_replay", _replay_arguments),
+    Command(("export-demos",), "turn recordings into a demonstration dataset (.npz shards and a manifest)",
+            "kinetix.recording.demos:run", _export_demos_arguments),
+    Command(("train-bc",), "behaviour cloning with the PPO network on an export-demos dataset",
+            "kinetix.recording.bc:run", _train_bc_arguments),
+    Command(("bench", "record"), "measure what recording adds per frame to a session-like loop",
+            "kinetix.bench.record:run", _bench_record_arguments),
+]
+
+
+def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print results as JSON lines")
+    parser.add_argument("--sizes", type=comma_list(str, allowed={"s", "m", "l"}), default=["s", "m", "l"],
+                        help="size classes to measure, comma-separated (default: s,m,l)")
+    parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
+    parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")
+    parser.add_argument("--updates-per-call", type=positive_int, default=4, help="updates per chunk (default: 4)")
+    parser.add_argument("--chunks", type=positive_int, default=3, help="timed chunks after the first (default: 3)")
+
+
+COMMANDS += [
+    Command(("bench", "train"), "measure PPO training throughput (env steps/s including updates) per size class",
+            "kinetix.agents.bench:run", _bench_train_arguments),
+    Command(("train",), "train a PPO agent on a level, a directory of levels or random levels",
+            "kinetix.agents.train:run", _train_arguments),
+    Command(("eval",), "solve rate of an agent over 20 attempts per level", "kinetix.agents.evaluate:run",
+            _eval_arguments),
 ]
 
 GROUP_HELP = {("bench",): "measure performance"}

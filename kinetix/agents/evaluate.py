@@ -1,0 +1,92 @@
+"""`kinetix eval`: the solve rate of an agent over `attempts` episodes per level.
+
+Levels are grouped by size class and frame skip (both compile-time), so each group compiles once; within a
+group every level keeps its own episode length, shaping and actuator scales (EnvParams are batched).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kinetix.agents.checkpoint import CheckpointError
+from kinetix.agents.policy import load_policy, required_observation
+from kinetix.agents.rollout import run_episodes
+from kinetix.env import EnvConfig, EnvParams, make_env
+from kinetix.level import LevelError, LevelFile
+from kinetix.levels import load_level
+from kinetix.reset_fns import stack_levels
+
+ATTEMPTS = 20
+
+
+def level_paths(spec: str | Path) -> list[Path]:
+    """A level file, or every *.json in a directory (sorted)."""
+    path = Path(spec)
+    if path.is_dir():
+        paths = sorted(path.glob("*.json"))
+        if not paths:
+            raise LevelError(f"no *.json level files in {path}")
+        return paths
+    if not path.is_file():
+        raise LevelError(f"level {path} does not exist")
+    return [path]
+
+
+def evaluate(agent: str, levels: list[tuple[str, LevelFile]], attempts: int = ATTEMPTS, seed: int = 0,
+             deterministic: bool = False) -> list[dict]:
+    """[{"level", "solve_rate", "mean_return"}] in the order of `levels` ((name, LevelFile) pairs)."""
+    observation = required_observation(agent) or "entity"
+    groups: dict[tuple[str, int], list[int]] = {}
+    for i, (_, lf) in enumerate(levels):
+        groups.setdefault((lf.size.name, lf.params.frame_skip), []).append(i)
+    results: list[dict | None] = [None] * len(levels)
+    key = jax.random.key(seed)
+    for (size, frame_skip), members in groups.items():
+        files = [levels[i][1] for i in members]
+        env = make_env(EnvConfig(size, observation=observation, frame_skip=frame_skip), files[0])
+        policy = load_policy(agent, env, deterministic=deterministic)
+        stacked = stack_levels(files)
+        params = jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
+                              *[EnvParams.from_level_params(lf.params) for lf in files])
+        repeat = lambda x: jnp.repeat(x, attempts, axis=0)
+        steps = max(lf.params.max_timesteps for lf in files)
+        act = lambda k, obs: policy.act(k, obs)[0]
+        key, sub = jax.random.split(key)
+        run = jax.jit(lambda lv, p, k: run_episodes(env, p, act, lv, k, steps))
+        solved, total = run(jax.tree.map(repeat, stacked), jax.tree.map(repeat, params), sub)
+        solved = np.asarray(solved).reshape(len(files), attempts)
+        total = np.asarray(total).reshape(len(files), attempts)
+        for j, i in enumerate(members):
+            results[i] = {"level": levels[i][0], "solve_rate": float(solved[j].mean()),
+                          "mean_return": float(total[j].mean())}
+    return results
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        paths = [p for spec in args.level for p in level_paths(spec)]
+        levels = [(str(p), load_level(p)) for p in paths]
+        results = evaluate(args.agent, levels, attempts=args.attempts, seed=args.seed,
+                           deterministic=args.deterministic)
+    except (LevelError, CheckpointError) as error:
+        print(f"kinetix eval: {error}", file=sys.stderr)
+        return 2
+    if args.json:
+        for r in results:
+            print(json.dumps(r))
+        return 0
+    width = max(len(r["level"]) for r in results)
+    print(f"{'level':<{width}}  solve rate  mean return   ({args.attempts} attempts per level, agent {args.agent})")
+    for r in results:
+        print(f"{r['level']:<{width}}  {r['solve_rate']:10.2f}  {r['mean_return']:11.3f}")
+    solved = sum(r["solve_rate"] >= 0.9 for r in results)
+    print(f"mean solve rate {np.mean([r['solve_rate'] for r in results]):.3f}; "
+          f"{solved}/{len(results)} levels solved at >= 90%")
+    return 0

@@ -1,0 +1,274 @@
+"""PPO in the PureJaxRL style: the whole training loop is one jittable function.
+
+    trainer = make_train(config, env, env_params, curriculum)
+    out = jax.jit(trainer.train)(key)              # everything: rollouts, GAE, minibatch epochs, logging
+    # or in chunks, for progress bars, checkpoints and cancellation (what `kinetix train` does):
+    runner = trainer.init(key)
+    runner, metrics = trainer.run(runner)          # `updates_per_call` updates, jitted once
+
+One update: `num_steps` steps of `num_envs` environments in a lax.scan (vmapped env, auto-reset to a level
+from the curriculum), GAE, then `update_epochs` epochs of `num_minibatches` minibatches of the clipped PPO loss.
+Metrics go to `callback(metrics: dict)` through jax.debug.callback after every update (host floats).
+
+Truncation is not termination: the TD target of a transition is r + gamma * V(s') unless the episode
+*terminated*; when it was *truncated* (time limit) s' is the last observation before the reset, whose value
+is computed during the rollout (`bootstrap_value`), so time limits do not look like failures to the critic.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+from flax.training.train_state import TrainState
+
+from kinetix.agents import distributions
+from kinetix.agents.curricula import Curriculum, Feedback
+from kinetix.agents.networks import ActorCritic
+from kinetix.agents.rollout import fresh_state
+from kinetix.env import EnvParams, KinetixEnv
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    total_timesteps: int = 1_000_000
+    num_envs: int = 32
+    num_steps: int = 64  # rollout length per update
+    update_epochs: int = 4
+    num_minibatches: int = 4
+    lr: float = 3e-4
+    anneal_lr: bool = True
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    network: str = "entity"
+    width: int = 64
+    hidden: int = 128
+    updates_per_call: int = 4  # updates per jitted chunk in `run`
+
+    def __post_init__(self):
+        for name in ("total_timesteps", "num_envs", "num_steps", "update_epochs", "num_minibatches",
+                     "updates_per_call"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if (self.num_envs * self.num_steps) % self.num_minibatches:
+            raise ValueError(f"num_envs * num_steps ({self.num_envs * self.num_steps}) must be divisible by "
+                             f"num_minibatches ({self.num_minibatches})")
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, math.ceil(self.total_timesteps / self.batch_size))
+
+    @property
+    def num_chunks(self) -> int:
+        """Jitted chunks of `updates_per_call` updates that `kinetix train` runs (rounding the updates up)."""
+        return math.ceil(self.num_updates / self.updates_per_call)
+
+    @property
+    def planned_steps(self) -> int:
+        return self.num_chunks * self.updates_per_call * self.batch_size
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Transition:
+    obs: Any
+    action: jax.Array
+    log_prob: jax.Array
+    value: jax.Array  # V(s)
+    reward: jax.Array
+    terminated: jax.Array  # won, lost or non-finite: no bootstrap
+    done: jax.Array  # terminated or truncated: the episode ended here (GAE does not look past it)
+    bootstrap_value: jax.Array  # V(s') of the true successor (the last observation before any reset)
+
+
+def compute_gae(reward: jax.Array, value: jax.Array, bootstrap_value: jax.Array, terminated: jax.Array,
+                done: jax.Array, gamma: float, lam: float) -> tuple[jax.Array, jax.Array]:
+    """(advantages, returns) over time axis 0.
+
+    delta_t = r_t + gamma * V(s'_t) * (1 - terminated_t) - V(s_t)
+    A_t     = delta_t + gamma * lam * (1 - done_t) * A_{t+1}
+    so a truncated step bootstraps from its own successor's value but does not chain into the next episode."""
+    delta = reward + gamma * bootstrap_value * (1.0 - terminated) - value
+
+    def back(carry, x):
+        d, dn = x
+        carry = d + gamma * lam * (1.0 - dn) * carry
+        return carry, carry
+
+    _, adv = jax.lax.scan(back, jnp.zeros_like(delta[0]), (delta, done.astype(delta.dtype)), reverse=True)
+    return adv, adv + value
+
+
+def make_network(config: TrainConfig, action_type: str) -> ActorCritic:
+    return ActorCritic(network=config.network, action=action_type, width=config.width, hidden=config.hidden)
+
+
+def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, batch: Transition,
+             advantages: jax.Array, targets: jax.Array):
+    outputs, value = network.apply({"params": params}, batch.obs)
+    log_prob = distributions.log_prob(outputs, batch.action, action_type)
+    value_clipped = batch.value + jnp.clip(value - batch.value, -config.clip_eps, config.clip_eps)
+    value_loss = 0.5 * jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2).mean()
+    ratio = jnp.exp(log_prob - batch.log_prob)
+    adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    actor_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_eps, 1 + config.clip_eps) * adv).mean()
+    entropy = distributions.entropy(outputs, action_type).mean()
+    total = actor_loss + config.vf_coef * value_loss - config.ent_coef * entropy
+    return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy}
+
+
+def ppo_update(network: nn.Module, action_type: str, config: TrainConfig, train_state: TrainState,
+               batch: Transition, advantages: jax.Array, targets: jax.Array, key: jax.Array):
+    """`update_epochs` epochs of minibatch SGD on one rollout (leading axes (T, E)). Returns (state, mean losses).
+
+    Pure: under a mesh the batch may be sharded over its env axis and XLA inserts the gradient all-reduce."""
+    flat = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), (batch, advantages, targets))
+    grad_fn = jax.value_and_grad(lambda p, b, a, t: ppo_loss(network, action_type, config, p, b, a, t), has_aux=True)
+
+    def epoch(state, epoch_key):
+        order = jax.random.permutation(epoch_key, config.batch_size)
+        shuffled = jax.tree.map(lambda x: x[order].reshape((config.num_minibatches, -1) + x.shape[1:]), flat)
+
+        def minibatch(state, mb):
+            (_, aux), grads = grad_fn(state.params, *mb)
+            return state.apply_gradients(grads=grads), aux
+
+        return jax.lax.scan(minibatch, state, shuffled)
+
+    train_state, aux = jax.lax.scan(epoch, train_state, jax.random.split(key, config.update_epochs))
+    return train_state, jax.tree.map(jnp.mean, aux)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Runner:
+    """Everything the training loop carries between updates."""
+
+    train_state: TrainState
+    env_state: Any  # batched EnvState
+    obs: Any
+    episode_return: jax.Array
+    env_level_ids: jax.Array
+    env_levels: Any  # initial scene of each env's current level (for plr)
+    curriculum: Any
+    env_params: EnvParams  # an argument of the compiled update, not a constant: one program serves many levels
+    key: jax.Array
+    update_index: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Trainer:
+    config: TrainConfig
+    network: ActorCritic
+    init: Callable[[jax.Array], Runner]
+    update: Callable[[Runner], tuple[Runner, dict]]  # one update (jittable)
+    run: Callable[[Runner], tuple[Runner, dict]]  # `updates_per_call` updates, jitted; metrics stacked
+    train: Callable[[jax.Array], dict]  # the whole run, jittable: {"runner": Runner, "metrics": stacked}
+
+
+def _batch_where(pred, a, b):
+    return jax.tree.map(lambda x, y: jnp.where(pred.reshape(pred.shape + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
+def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curriculum: Curriculum,
+               callback: Callable[[dict], None] | None = None, init_params: Any = None,
+               shard: Callable[[Any], Any] | None = None) -> Trainer:
+    """A PPO trainer. `init_params`: start from these network parameters (fine-tuning) instead of fresh ones.
+    `shard(tree) -> tree` places env-batched arrays (leading axis num_envs) on devices (see kinetix.agents.sharding);
+    None keeps everything on the default device."""
+    action_type = env.config.action
+    network = make_network(config, action_type)
+    E, T = config.num_envs, config.num_steps
+    schedule = (optax.linear_schedule(config.lr, 0.0, config.num_updates * config.update_epochs
+                                      * config.num_minibatches) if config.anneal_lr else config.lr)
+    tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(schedule, eps=1e-5))
+    observe = jax.vmap(env.observe)
+    transition = jax.vmap(env.transition, in_axes=(0, 0, None))
+    place = shard or (lambda tree: tree)
+
+    def init(key: jax.Array) -> Runner:
+        k_net, k_cur, k_pool, k_run = jax.random.split(key, 4)
+        cstate = curriculum.init(k_cur)
+        levels, ids = curriculum.sample(k_pool, cstate, E)
+        state = jax.vmap(fresh_state)(levels)
+        obs = observe(state)
+        params = init_params
+        if params is None:
+            params = network.init(k_net, jax.tree.map(lambda x: x[:1], obs))["params"]
+        train_state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
+        return Runner(train_state, place(state), place(obs), place(jnp.zeros((E,), jnp.float32)), place(ids),
+                      place(levels), cstate, jax.tree.map(jnp.asarray, env_params), k_run, jnp.asarray(0, jnp.int32))
+
+    def update(runner: Runner) -> tuple[Runner, dict]:
+        key, k_pool, k_roll, k_upd, k_cur = jax.random.split(runner.key, 5)
+        pool_levels, pool_ids = curriculum.sample(k_pool, runner.curriculum, E)
+        pool_levels, pool_ids = place(pool_levels), place(pool_ids)
+        pool_state = jax.vmap(fresh_state)(pool_levels)
+        pool_obs = observe(pool_state)  # observed once per update, not once per step
+        params = runner.train_state.params
+
+        def env_step(carry, step_key):
+            state, obs, ep_return, ids, levels = carry
+            k_act, _ = jax.random.split(step_key)
+            outputs, value = network.apply({"params": params}, obs)
+            action = distributions.sample(k_act, outputs, action_type)
+            log_prob = distributions.log_prob(outputs, action, action_type)
+            next_state, reward, terminated, truncated, info = transition(state, action, runner.env_params)
+            final_obs = observe(next_state)
+            _, bootstrap_value = network.apply({"params": params}, final_obs)
+            done = terminated | truncated
+            step_ids = ids
+            ep_return = ep_return + reward
+            metrics = {"return": jnp.where(done, ep_return, 0.0), "solved": done & info["solved"], "done": done}
+            carry = (_batch_where(done, pool_state, next_state), _batch_where(done, pool_obs, final_obs),
+                     jnp.where(done, 0.0, ep_return), jnp.where(done, pool_ids, ids),
+                     _batch_where(done, pool_levels, levels))
+            t = Transition(obs, action, log_prob, value, reward, terminated.astype(jnp.float32),
+                           done.astype(jnp.float32), bootstrap_value)
+            return carry, (t, step_ids, metrics)
+
+        carry = (runner.env_state, runner.obs, runner.episode_return, runner.env_level_ids, runner.env_levels)
+        carry, (batch, step_ids, ep) = jax.lax.scan(env_step, carry, jax.random.split(k_roll, T))
+        env_state, obs, ep_return, env_ids, env_levels = carry
+        advantages, targets = compute_gae(batch.reward, batch.value, batch.bootstrap_value, batch.terminated,
+                                          batch.done, config.gamma, config.gae_lambda)
+        train_state, losses = ppo_update(network, action_type, config, runner.train_state, batch, advantages,
+                                         targets, k_upd)
+        feedback = Feedback(train_state.params, step_ids, advantages, env_ids, env_levels, runner.update_index)
+        cstate, env_ids = curriculum.update(k_cur, runner.curriculum, feedback)
+        episodes = ep["done"].sum()
+        metrics = dict(losses, update=runner.update_index + 1, env_steps=(runner.update_index + 1) * E * T,
+                       episodes=episodes, mean_return=ep["return"].sum() / jnp.maximum(episodes, 1),
+                       solve_rate=ep["solved"].sum() / jnp.maximum(episodes, 1),
+                       mean_reward=batch.reward.mean())
+        if callback is not None:
+            jax.debug.callback(lambda m: callback({k: float(v) for k, v in m.items()}), metrics, ordered=True)
+        runner = Runner(train_state, env_state, obs, ep_return, env_ids, env_levels, cstate, runner.env_params, key,
+                        runner.update_index + 1)
+        return runner, metrics
+
+    def run_chunk(runner: Runner, length: int):
+        return jax.lax.scan(lambda r, _: update(r), runner, None, length=length)
+
+    run = jax.jit(lambda runner: run_chunk(runner, config.updates_per_call), donate_argnums=0)
+
+    def train(key: jax.Array) -> dict:
+        runner, metrics = run_chunk(init(key), config.num_updates)
+        return {"runner": runner, "metrics": metrics}
+
+    return Trainer(config, network, init, update, run, train)

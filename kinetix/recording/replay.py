@@ -1,0 +1,177 @@
+"""Exact replay: rebuild the env a recording was made with, re-simulate its actions and compare states bitwise.
+
+Bitwise equality needs the same compiled program on the same machine. Players (the CLI, the server) step with
+`step_function(config)` from here, and replay uses the same function, so both run one XLA program per config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from collections.abc import Iterator
+
+import jax
+import numpy as np
+
+from kinetix.recording.errors import RecordingError
+from kinetix.recording.reader import Recording
+
+
+@functools.cache
+def step_function(config):
+    """The jitted `(state, action, params) -> (next_state, reward, terminated, truncated, info)` for one EnvConfig
+    (no observation, no reset). One per config for the whole process, shared by recording and replay."""
+    from kinetix.env import KinetixEnv
+
+    env = KinetixEnv(config, lambda key: None)  # transition never calls the reset function
+    return jax.jit(env.transition)
+
+
+def make_env(recording: Recording, observation: str | None = None):
+    """(env, params) as recorded; `observation` overrides the observation type (it does not change the physics)."""
+    from jax2d.state import SimParams, SolverConfig
+    from kinetix.env import EnvConfig, EnvParams
+    from kinetix.env import make_env as make
+
+    desc = recording.env
+    try:
+        config = EnvConfig(size=recording.level_file.size, observation=observation or desc["observation"],
+                           action=desc["action"], frame_skip=int(desc["frame_skip"]),
+                           pixel_resolution=int(desc["pixel_resolution"]), solver=SolverConfig(**desc["solver"]))
+        p = desc["params"]
+        params = EnvParams(max_timesteps=int(p["max_timesteps"]), dense_reward_scale=p["dense_reward_scale"],
+                           sim=SimParams(**p["sim"]))
+    except (KeyError, TypeError, ValueError) as error:
+        raise RecordingError(f"the recording's env description is not usable: {error}") from None
+    return make(config, recording.level_file), params
+
+
+@dataclasses.dataclass(frozen=True)
+class ReplayCheck:
+    steps: int  # steps re-simulated
+    divergent_step: int | None  # first step whose state, reward or flags differ (None: all equal)
+    detail: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.divergent_step is None
+
+
+def replay_states(recording: Recording, observation: str | None = None) -> Iterator[tuple[int, object, object]]:
+    """Yield (step index, env state after the step, env) by re-simulating the recorded actions.
+
+    After a step that ended an episode the next one starts again from the recorded level, as when playing.
+    """
+    env, params = make_env(recording, observation)
+    step = step_function(env.config)
+    start = env.initial_state(jax.random.PRNGKey(0), params)  # reset_single: the key is not used
+    state = start
+    for i in range(recording.num_steps):
+        state, *_ = step(state, recording.actions[i], params)
+        yield i, state, env
+        if recording.terminated[i] or recording.truncated[i]:
+            state = start
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Bitwise equality of float32 arrays (NaNs with the same bits are equal, 0.0 and -0.0 are not)."""
+    return a.shape == b.shape and np.array_equal(np.ascontiguousarray(a, np.float32).view(np.uint32),
+                                                 np.ascontiguousarray(b, np.float32).view(np.uint32))
+
+
+def verify(recording: Recording) -> ReplayCheck:
+    """Re-simulate every step and compare the bodies' states, rewards and end flags with the recorded ones."""
+    env, params = make_env(recording)
+    step = step_function(env.config)
+    start = env.initial_state(jax.random.PRNGKey(0), params)
+    state = start
+    b = recording.bodies
+    for i in range(recording.num_steps):
+        state, reward, terminated, truncated, _ = step(state, recording.actions[i], params)
+        bodies = state.level.sim.bodies
+        checks = (("position", np.asarray(bodies.position)[b], recording.position[i]),
+                  ("rotation", np.asarray(bodies.angle)[b], recording.rotation[i]),
+                  ("velocity", np.asarray(bodies.velocity)[b], recording.velocity[i]),
+                  ("angular velocity", np.asarray(bodies.angular_velocity)[b], recording.angular_velocity[i]),
+                  ("reward", np.asarray(reward, np.float32), recording.rewards[i]))
+        for what, got, want in checks:
+            if not _same(np.asarray(got), np.asarray(want)):
+                diff = float(np.max(np.abs(np.asarray(got, np.float64) - np.asarray(want, np.float64))))
+                return ReplayCheck(i + 1, i, f"{what} differs (max abs difference {diff:.3g})")
+        if bool(terminated) != recording.terminated[i] or bool(truncated) != recording.truncated[i]:
+            return ReplayCheck(i + 1, i, "the end-of-episode flags differ")
+        if recording.terminated[i] or recording.truncated[i]:
+            state = start
+    return ReplayCheck(recording.num_steps, None)
+
+
+def replay_frames(recording: Recording, resolution: int = 256, every: int = 1) -> Iterator[tuple[int, np.ndarray]]:
+    """(step index, uint8 RGB image) of every `every`-th re-simulated step, starting with the initial level (-1)."""
+    from kinetix.render import render_pixels, to_uint8
+
+    yield -1, to_uint8(render_pixels(recording.level_file.level, resolution))
+    for i, state, _ in replay_states(recording):
+        if (i + 1) % every == 0 or i == recording.num_steps - 1:
+            yield i, to_uint8(render_pixels(state.level, resolution))
+
+
+def step_seconds(recording: Recording) -> float:
+    """Simulated seconds per env step."""
+    return float(recording.env["params"]["sim"]["dt"]) * int(recording.env["frame_skip"])
+
+
+def write_gif(recording: Recording, path, resolution: int = 256, fps: float = 15.0) -> int:
+    """Write the re-simulated play as an animated GIF (real-time speed); returns the number of frames."""
+    from PIL import Image
+
+    every = max(1, round(1.0 / (fps * step_seconds(recording))))
+    images = [Image.fromarray(image) for _, image in replay_frames(recording, resolution, every)]
+    duration = max(20, int(round(1000 * every * step_seconds(recording) / 10)) * 10)  # GIF delays are 10 ms units
+    tmp = f"{path}.part"
+    images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
+    os.replace(tmp, path)  # never a half-written GIF at the target
+    return len(images)
+
+
+def write_mp4(recording: Recording, path, resolution: int = 256, fps: float = 30.0) -> int:
+    """Write the re-simulated play as an MP4 through imageio's ffmpeg plugin; RecordingError if that is missing."""
+    try:
+        import imageio.v2 as imageio
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise RecordingError("writing MP4 needs the imageio-ffmpeg package (pip install imageio imageio-ffmpeg); "
+                             "use --gif instead") from None
+    every = max(1, round(1.0 / (fps * step_seconds(recording))))
+    rate = 1.0 / (every * step_seconds(recording))
+    tmp = f"{path}.part.mp4"
+    count = 0
+    with imageio.get_writer(tmp, fps=rate, codec="libx264", quality=7, macro_block_size=16) as writer:
+        for _, image in replay_frames(recording, resolution, every):
+            writer.append_data(image)
+            count += 1
+    os.replace(tmp, path)
+    return count
+
+
+def recorded_level(recording: Recording, step: int):
+    """The Level as recorded after `step` (-1: the start), without re-simulating: the initial level with the
+    recorded position, rotation and velocities of its bodies. Cheap enough for scrubbing a timeline; render it
+    with kinetix.render.render_pixels."""
+    import jax.numpy as jnp
+
+    level = recording.level_file.level
+    if step < 0:
+        return level
+    if step >= recording.num_steps:
+        raise IndexError(f"step {step} is past the recording's {recording.num_steps} steps")
+    b = recording.bodies
+    bodies = level.sim.bodies
+    bodies = dataclasses.replace(
+        bodies,
+        position=jnp.asarray(bodies.position).at[b].set(recording.position[step]),
+        angle=jnp.asarray(bodies.angle).at[b].set(recording.rotation[step]),
+        velocity=jnp.asarray(bodies.velocity).at[b].set(recording.velocity[step]),
+        angular_velocity=jnp.asarray(bodies.angular_velocity).at[b].set(recording.angular_velocity[step]),
+    )
+    return dataclasses.replace(level, sim=dataclasses.replace(level.sim, bodies=bodies))

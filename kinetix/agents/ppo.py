@@ -257,7 +257,8 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
                        solve_rate=ep["solved"].sum() / jnp.maximum(episodes, 1),
                        mean_reward=batch.reward.mean())
         if callback is not None:
-            jax.debug.callback(lambda m: callback({k: float(v) for k, v in m.items()}), metrics, ordered=True)
+            # unordered: ordered effects are not supported across several devices; metrics carry their "update"
+            jax.debug.callback(lambda m: callback({k: float(v) for k, v in m.items()}), metrics)
         runner = Runner(train_state, env_state, obs, ep_return, env_ids, env_levels, cstate, runner.env_params, key,
                         runner.update_index + 1)
         return runner, metrics

@@ -51,6 +51,7 @@ class App:
         self._uvicorn = None
         self._thread: threading.Thread | None = None
         self._socket: socket.socket | None = None
+        self.store = None  # the gallery Store, once started with the gallery on
 
     @property
     def port(self) -> int:
@@ -116,17 +117,16 @@ class App:
         return lambda client: level_file
 
     def _gallery_router(self):
-        """The gallery's API router (issue 5) when that package is installed, else None."""
+        """The gallery's API router, with the gallery linked into every editor tab; None with the gallery off."""
         if not self.config.gallery:
             return None
-        try:
-            from server.gallery.api import make_router
-            from server.gallery.store import open_store
-        except ImportError:
-            return None
-        data = self.config.data or default_data_dir()
-        store = open_store(self.config.db or os.environ.get("KINETIX_DB") or data)
-        return make_router(store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
+        from server.gallery.api import make_router
+        from server.gallery.store import open_store
+        from server.gallery.tab import GalleryLink
+
+        self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir())
+        GalleryLink(self.store).attach(self.manager)
+        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
 
     def stop(self) -> None:
         if self.manager is not None:
@@ -135,6 +135,9 @@ class App:
             self._uvicorn.should_exit = True
         if self._thread is not None:
             self._thread.join(timeout=5)
+        if self.store is not None:
+            self.store.close()
+            self.store = None
         if self.viser is not None:
             with contextlib.redirect_stdout(io.StringIO()):
                 self.viser.stop()

@@ -86,6 +86,8 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
             if session is None:
                 await socket.close(code=1008, reason="unknown session")
                 return
+            if isinstance(hello.get("token"), str) and hello["token"]:
+                session.author_token = hello["token"]  # the gallery author token the browser keeps
             await socket.send_text(json.dumps({"type": "ready"}))
             query = hello.get("query")
             if isinstance(query, str) and query and manager.on_query is not None:

@@ -120,6 +120,8 @@ class Session:
         self._pushed_key = None  # what the last edit-mode frame showed, to push only on change
         self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
         self._view = draw.View(512, 512)
+        self.author_token: str | None = None  # the tab's gallery author token (from localStorage, via /keys)
+        self.gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self._build_gui()
         self._wire_pointer()
         self.refresh(force=True)
@@ -142,6 +144,8 @@ class Session:
         self._again_button.on_click(lambda _: self.play_again())
         self._edit_button.on_click(lambda _: self.stop())
         self.panel = None
+        if self.manager.on_session_gui is not None:
+            self.manager.on_session_gui(self)
         try:
             from server.editor import Editor
             from server.editor.panel import EditorPanel
@@ -249,6 +253,15 @@ class Session:
             self._wake.set()
 
     # ------------------------------------------------------------------ play control
+
+    def open_level(self, data: bytes, filename: str = "") -> None:
+        """Replace the edited level by a level document (either format); raises the editor's error on bad input."""
+        with self.lock:
+            self.stop()
+            self.editor.import_bytes(data, filename)
+            if self.panel is not None:
+                self.panel.refresh()
+            self.refresh(force=True)
 
     def toggle_play(self) -> None:
         with self.lock:
@@ -363,6 +376,10 @@ class Session:
             self.mode = "ended"
             self.held.clear()
             self._set_buttons()
+            if self.manager.on_play_end is not None:  # e.g. the gallery's play statistics; off the play thread
+                seconds = result.timestep * float(params.sim.dt) * stepper.frame_skip
+                threading.Thread(target=self.manager.on_play_end, args=(self, self._result, result.timestep, seconds),
+                                 daemon=True).start()
         self._push_frame(ack=ack)
 
     # ------------------------------------------------------------------ frames
@@ -460,6 +477,9 @@ class SessionManager:
         self.editor_factory = editor_factory  # (level, size=) -> Editor; default server.editor.Editor
         # (session, "?level=...&mode=play") -> None: set by the gallery integration to open a level from the URL.
         self.on_query: Callable[[Session, str], None] | None = None
+        self.on_session_gui: Callable[[Session], None] | None = None  # adds GUI to a new session (the gallery's)
+        # (session, "solved" | "failed" | "truncated" | "nan", steps, seconds) after every finished play.
+        self.on_play_end: Callable[[Session, str, int, float], None] | None = None
         self.max_sessions = max_sessions
         self.initial_level = initial_level  # (client) -> LevelFile | None, e.g. from ?level= (gallery)
         self._lock = threading.Lock()

@@ -28,7 +28,17 @@
     else if (queue.length < 64) queue.push(message);
   }
 
+  // The gallery author token lives in localStorage (shared with /gallery); a save that issued a new one puts it
+  // in the page as <div id="kinetix-token" data-token=...>, and we keep it from there.
+  const TOKEN_KEY = "kinetix.author_token";
+  function keepToken() {
+    const el = document.getElementById("kinetix-token");
+    const token = el && el.getAttribute("data-token");
+    if (token && localStorage.getItem(TOKEN_KEY) !== token) localStorage.setItem(TOKEN_KEY, token);
+  }
+
   function connect() {
+    keepToken();
     const el = document.getElementById("kinetix-session");
     if (!el) return false;
     const found = el.getAttribute("data-nonce");
@@ -37,7 +47,8 @@
     ready = false;
     if (socket) socket.close();
     socket = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/keys");
-    socket.onopen = () => socket.send(JSON.stringify({ type: "hello", nonce, query: location.search }));
+    socket.onopen = () => socket.send(JSON.stringify({ type: "hello", nonce, query: location.search,
+      token: localStorage.getItem(TOKEN_KEY) }));
     socket.onmessage = (ev) => {
       if (JSON.parse(ev.data).type === "ready") {
         ready = true;

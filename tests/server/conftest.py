@@ -17,7 +17,7 @@ LEVELS = Path(__file__).resolve().parents[2] / "levels"
 def running_app(**config):
     from server.app import App, Config
 
-    app = App(Config(port=0, gallery=False, **config)).start()
+    app = App(Config(**{"port": 0, "gallery": False, **config})).start()
     try:
         yield app
     finally:

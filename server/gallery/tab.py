@@ -1,0 +1,144 @@
+"""The gallery inside an editor tab: Save to gallery, Open from gallery, `/?level=<id>` links and play records.
+
+`GalleryLink(store).attach(manager)` hooks a SessionManager:
+- every new session gets a "Gallery" folder with Save (a modal for name, description and tags) and Open (a modal
+  listing the newest levels), plus a link to the /gallery page;
+- `/?level=<id>` opens that level in the tab (`&mode=play` starts playing it); the page's query reaches Python
+  through the /keys hello;
+- every finished play of a level that is in the gallery is recorded as a human play (solved, steps, seconds of
+  simulated time, so pauses and a slow machine do not change a player's time).
+
+A save made while editing a gallery level is a remix: it keeps that level as its parent. The author token comes
+from the browser's localStorage (sent with the /keys hello); a save that issues a new token hands it back to the
+page, which keeps it for the gallery page too.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import logging
+from urllib.parse import parse_qs
+
+from server.gallery.store import Store, StoreError, Unauthorized
+
+log = logging.getLogger(__name__)
+
+OPEN_LIST_SIZE = 50  # levels offered by "Open from gallery" (newest first); the gallery page shows them all
+
+
+class GalleryLink:
+    def __init__(self, store: Store):
+        self.store = store
+
+    def attach(self, manager) -> None:
+        manager.on_session_gui = self.build_gui
+        manager.on_query = self.open_from_query
+        manager.on_play_end = self.record_play
+
+    # ------------------------------------------------------------------ GUI
+
+    def build_gui(self, session) -> None:
+        gui = session.client.gui
+        with gui.add_folder("Gallery"):
+            save = gui.add_button("Save to gallery")
+            open_ = gui.add_button("Open from gallery")
+            gui.add_markdown("[Browse the gallery](/gallery)")
+        save.on_click(lambda event: self._save_modal(session))
+        open_.on_click(lambda event: self._open_modal(session))
+
+    def _save_modal(self, session) -> None:
+        gui = session.client.gui
+        with gui.add_modal("Save to gallery") as modal:
+            name = gui.add_text("Name", initial_value=session.editor.spec.name or "")
+            description = gui.add_text("Description", initial_value="", multiline=True)
+            tags = gui.add_text("Tags (comma-separated)", initial_value="")
+            status = gui.add_markdown("")
+            save = gui.add_button("Save")
+            cancel = gui.add_button("Cancel")
+
+        def on_save(_event) -> None:
+            tag_list = [t.strip() for t in tags.value.split(",") if t.strip()]
+            try:
+                level_id = self.save(session, name.value, description.value, tag_list)
+            except StoreError as error:
+                status.content = f"**Not saved:** {html.escape(str(error))}"
+                return
+            modal.close()
+            session.client.add_notification("Saved to the gallery", f"Share it: /?level={level_id}",
+                                            auto_close_seconds=8.0)
+
+        save.on_click(on_save)
+        cancel.on_click(lambda _event: modal.close())
+
+    def _open_modal(self, session) -> None:
+        gui = session.client.gui
+        items, _ = self.store.list_levels(sort="newest", limit=OPEN_LIST_SIZE)
+        with gui.add_modal("Open from gallery") as modal:
+            if not items:
+                gui.add_markdown("The gallery is empty.")
+                gui.add_button("Close").on_click(lambda _event: modal.close())
+                return
+            labels = [f"{item['name']} ({item['size']}, {item['id']})" for item in items]
+            choice = gui.add_dropdown("Level", options=labels, initial_value=labels[0])
+            status = gui.add_markdown("")
+            open_ = gui.add_button("Open")
+            cancel = gui.add_button("Cancel")
+
+        def on_open(_event) -> None:
+            level_id = items[labels.index(choice.value)]["id"]
+            try:
+                self.open(session, level_id)
+            except (StoreError, ValueError) as error:
+                status.content = f"**Cannot open:** {html.escape(str(error))}"
+                return
+            modal.close()
+
+        open_.on_click(on_open)
+        cancel.on_click(lambda _event: modal.close())
+
+    # ------------------------------------------------------------------ actions (also the tests' entry points)
+
+    def save(self, session, name: str, description: str = "", tags: list[str] | None = None) -> str:
+        """Save the tab's level; returns the new level's id. A stale author token is replaced by a new one."""
+        document = json.loads(session.editor.export("ours"))
+        kwargs = dict(description=description, tags=tags or [], parent=session.gallery_id)
+        try:
+            level_id, new_token = self.store.create_level(name, document, token=session.author_token, **kwargs)
+        except Unauthorized:  # a token this gallery does not know (e.g. another server's): start a new author
+            level_id, new_token = self.store.create_level(name, document, token=None, **kwargs)
+        if new_token:
+            session.author_token = new_token
+            # keys.js copies it into localStorage, where the gallery page finds it too.
+            session.client.gui.add_html(f'<div id="kinetix-token" data-token="{html.escape(new_token)}" hidden></div>')
+        session.gallery_id = level_id
+        return level_id
+
+    def open(self, session, level_id: str) -> None:
+        """Load a gallery level into the tab for editing (a later save is a remix of it)."""
+        level = self.store.get_level(level_id)
+        session.open_level(json.dumps(level["level"]).encode(), f"{level_id}.json")
+        session.gallery_id = level_id
+
+    def open_from_query(self, session, query: str) -> None:
+        """`?level=<id>[&mode=play]` from the page URL."""
+        params = parse_qs(query.lstrip("?"))
+        level_id = (params.get("level") or [None])[0]
+        if not level_id:
+            return
+        try:
+            self.open(session, level_id)
+        except (StoreError, ValueError) as error:
+            session.client.add_notification("Cannot open that level", str(error), color="red")
+            return
+        if (params.get("mode") or [""])[0] == "play":
+            session.play()
+
+    def record_play(self, session, result: str, steps: int, seconds: float) -> None:
+        if session.gallery_id is None:  # an unsaved level has no gallery entry to count the play against
+            return
+        try:
+            self.store.record_play(session.gallery_id, "human", solved=result == "solved", steps=int(steps),
+                                   seconds=float(seconds))
+        except StoreError as error:  # e.g. the level was deleted meanwhile; a lost statistic is not worth a crash
+            log.warning("play not recorded for %s: %s", session.gallery_id, error)

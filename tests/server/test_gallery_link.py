@@ -1,0 +1,111 @@
+"""The gallery inside an editor tab (server.gallery.tab): save, remix, open by link, play records, author tokens."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+from fake_editor import falling_win_spec
+from viser_client import KeysSocket, session_nonce
+
+from kinetix.formats import build
+from kinetix.levels import to_document
+from server.gallery.tab import GalleryLink
+from tests.server.conftest import running_app
+
+
+@pytest.fixture(scope="module")
+def app(tmp_path_factory):
+    with running_app(gallery=True, data=tmp_path_factory.mktemp("data"), warm_sizes=("m",), max_sessions=4) as app:
+        yield app
+
+
+def _wait(predicate, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not reached")
+        time.sleep(0.02)
+
+
+def _session(app, client):
+    nonce = session_nonce(client)
+    _wait(lambda: app.manager.session_by_nonce(nonce) is not None)
+    return app.manager.session_by_nonce(nonce), nonce
+
+
+def _html(client) -> list[str]:
+    return [e.get("content", "") for e in client.gui().values() if e["type"] == "GuiHtmlMessage"]
+
+
+def _falling_win_document() -> dict:
+    return to_document(build(falling_win_spec()))
+
+
+def test_save_issues_a_token_once_and_a_later_save_of_an_opened_level_is_a_remix(app, make_client):
+    client = make_client(app)
+    session, _ = _session(app, client)
+    link = GalleryLink(app.store)
+    first = link.save(session, "my <b>level</b>", "desc", ["cars"])
+    token = session.author_token
+    assert token, "the first save issues an author token"
+    # The page gets the token (keys.js keeps it in localStorage for the gallery page).
+    _wait(lambda: any(token in html for html in _html(client)))
+    saved = app.store.get_level(first)
+    assert saved["name"] == "my <b>level</b>" and saved["tags"] == ["cars"] and saved["parent"] is None
+    edited = json.loads(session.editor.export("ours"))
+    assert saved["level"] == {**edited, "name": "my <b>level</b>"}  # the gallery name becomes the level's name
+
+    second = link.save(session, "remix")
+    assert session.author_token == token, "a known token is kept"
+    assert app.store.get_level(second)["parent"] == first
+    assert app.store.get_level(second)["author"] == saved["author"]
+
+
+def test_a_stale_token_gets_a_new_author_instead_of_an_error(app, make_client):
+    client = make_client(app)
+    session, _ = _session(app, client)
+    session.author_token = "not-a-token-of-this-gallery"
+    level_id = GalleryLink(app.store).save(session, "fresh author")
+    assert session.author_token != "not-a-token-of-this-gallery"
+    assert app.store.get_level(level_id)["name"] == "fresh author"
+
+
+def test_level_link_opens_and_plays_and_the_finished_play_is_recorded(app, make_client):
+    level_id, token = app.store.create_level("falling win", _falling_win_document())
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play", token=token)
+    try:
+        _wait(lambda: session.gallery_id == level_id)
+        assert session.author_token == token  # the browser's token arrives with the hello
+        _wait(lambda: session.mode == "ended")
+        assert session._result == "solved"
+        _wait(lambda: app.store.stats(level_id)["human_plays"] == 1)
+        stats = app.store.stats(level_id)
+        assert stats["human_solved"] == 1 and stats["agent_plays"] == 0
+        # Simulated seconds: steps x frame skip x dt, whatever the machine's speed.
+        assert stats["best_human_seconds"] == pytest.approx(stats["best_human_steps"] * 2 / 60)
+    finally:
+        keys.close()
+
+
+def test_unknown_level_link_leaves_the_tab_editing_its_level(app, make_client):
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    before = session.editor.export("ours")
+    keys = KeysSocket(app.port, nonce, query="?level=doesnotexist&mode=play")
+    try:
+        _wait(lambda: "Cannot open that level" in json.dumps(client.messages, default=str))
+        assert session.gallery_id is None and session.mode == "edit"
+        assert session.editor.export("ours") == before
+    finally:
+        keys.close()
+
+
+def test_save_and_open_buttons_are_in_the_tab(app, make_client):
+    client = make_client(app)
+    _session(app, client)
+    for label in ("Save to gallery", "Open from gallery"):
+        assert client.find_gui(label)

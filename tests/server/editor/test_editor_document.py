@@ -5,29 +5,13 @@ import math
 import pytest
 
 from server.editor import Editor
-
-
-def drag(ed: Editor, a, b, **mods):
-    ed.pointer_down(*a, **mods)
-    ed.pointer_move(*b, **mods)
-    return ed.pointer_up(*b, **mods)
+from tests.server.editor.scenes import drag, hinged_editor
 
 
 @pytest.fixture
 def ed() -> Editor:
     """Body 4 a rectangle, body 5 a circle hinged to it, a thruster on body 4."""
-    editor = Editor(size="l")
-    editor.snapping = False
-    editor.set_tool("rectangle")
-    drag(editor, (1.0, 1.0), (2.0, 1.4))
-    editor.set_tool("circle")
-    drag(editor, (2.0, 1.2), (2.3, 1.2))
-    editor.set_tool("revolute")
-    editor.click(1.95, 1.2)
-    editor.set_tool("thruster")
-    editor.click(1.2, 1.2)
-    editor.set_tool("select")
-    return editor
+    return hinged_editor()
 
 
 @pytest.mark.parametrize(("field", "value", "expected", "shown"), [

@@ -8,28 +8,14 @@ import pytest
 from kinetix.formats import build
 from kinetix.levels import load_level
 from server.editor import Editor, EditorError
+from tests.server.editor.scenes import hinged_editor
 
 REPO = Path(__file__).resolve().parents[3]
 
 
-def drag(ed: Editor, a, b):
-    ed.pointer_down(*a)
-    ed.pointer_move(*b)
-    return ed.pointer_up(*b)
-
-
 @pytest.fixture
 def ed() -> Editor:
-    editor = Editor(size="l")
-    editor.snapping = False
-    editor.set_tool("rectangle")
-    drag(editor, (1.0, 1.0), (2.0, 1.4))
-    editor.set_tool("circle")
-    drag(editor, (2.0, 1.2), (2.3, 1.2))
-    editor.set_tool("revolute")
-    editor.click(1.95, 1.2)
-    editor.set_tool("thruster")
-    editor.click(1.2, 1.2)
+    editor = hinged_editor()
     editor.selection = [("joint", 0)]
     editor.set_properties(motor_on=True, motor_binding=2, limits_on=True, limit_min=-20.0, limit_max=40.0)
     editor.selection = [("body", 5)]

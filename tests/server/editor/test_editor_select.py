@@ -6,31 +6,13 @@ import pytest
 
 from kinetix.formats import build
 from server.editor import Editor
-
-
-def drag(ed: Editor, a, b, **mods):
-    ed.pointer_down(*a, **mods)
-    ed.pointer_move((a[0] + b[0]) / 2, (a[1] + b[1]) / 2, **mods)
-    ed.pointer_move(*b, **mods)
-    return ed.pointer_up(*b, **mods)
+from tests.server.editor.scenes import drag, hinged_editor
 
 
 @pytest.fixture
 def ed() -> Editor:
     """Bodies 4 (rectangle) and 5 (circle) hinged at (1.95, 1.2), body 6 a lone circle, thruster on body 4."""
-    editor = Editor(size="l")
-    editor.snapping = False
-    editor.set_tool("rectangle")
-    drag(editor, (1.0, 1.0), (2.0, 1.4))
-    editor.set_tool("circle")
-    drag(editor, (2.0, 1.2), (2.3, 1.2))
-    drag(editor, (3.5, 3.5), (3.8, 3.5))
-    editor.set_tool("revolute")
-    editor.click(1.95, 1.2)
-    editor.set_tool("thruster")
-    editor.click(1.2, 1.2)
-    editor.set_tool("select")
-    return editor
+    return hinged_editor(lone_circle=True)
 
 
 def test_click_selects_topmost_and_cycles(ed):

@@ -6,20 +6,12 @@ import pytest
 
 from kinetix.formats import build
 from server.editor import Editor
-
-
-def drag(ed: Editor, a, b, **mods):
-    ed.pointer_down(*a, **mods)
-    ed.pointer_move((a[0] + b[0]) / 2, (a[1] + b[1]) / 2, **mods)
-    ed.pointer_move(*b, **mods)
-    return ed.pointer_up(*b, **mods)
+from tests.server.editor.scenes import blank_editor, drag
 
 
 @pytest.fixture
 def ed() -> Editor:
-    editor = Editor(size="l")
-    editor.snapping = False
-    return editor
+    return blank_editor()
 
 
 def test_new_editor_is_walls_only(ed):

@@ -148,6 +148,8 @@ class App:
 def serve(args) -> int:
     """`kinetix serve`: start, print the URL, run until Ctrl+C (or SIGTERM), then shut down cleanly."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # viser's websocket server logs its internal port at INFO; users must open only the URL printed below.
+    logging.getLogger("websockets").setLevel(logging.WARNING)
     config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
                     db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
                     warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"))

@@ -6,7 +6,7 @@ a background thread, see server.app) is the one URL the user opens:
     GET /            viser's client/build/index.html with `window.__KINETIX__ = {viserPort}` and keys.js injected
     GET /static/...  files of static/
     WS  /keys        key events from keys.js, paired to the tab's session by the nonce the session put in the page
-    GET /gallery     static/gallery.html (the gallery helper's page), when present
+    GET /gallery     static/gallery.html, the gallery page; only with the gallery router (it calls /api)
     /api/...         the gallery router, when given (create_app(..., gallery_router=router))
 """
 
@@ -60,10 +60,10 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
 
     @app.get("/gallery", include_in_schema=False)
     def gallery():
-        path = static_dir / "gallery.html"
-        if not path.is_file():
-            return PlainTextResponse("the gallery is not installed", status_code=404)
-        return FileResponse(path)
+        # The page is nothing without its API: a server started without the gallery says so instead.
+        if gallery_router is None:
+            return PlainTextResponse("this server runs without the gallery", status_code=404)
+        return FileResponse(static_dir / "gallery.html")
 
     if gallery_router is not None:
         app.include_router(gallery_router, prefix="/api")

@@ -109,3 +109,12 @@ def test_save_and_open_buttons_are_in_the_tab(app, make_client):
     _session(app, client)
     for label in ("Save to gallery", "Open from gallery"):
         assert client.find_gui(label)
+
+
+def test_the_gallery_page_and_api_are_served_beside_the_editor(app):
+    import urllib.request
+
+    page = urllib.request.urlopen(app.url + "gallery", timeout=10).read().decode()
+    assert "<template id=\"card\">" in page
+    listing = json.loads(urllib.request.urlopen(app.url + "api/levels?limit=1", timeout=10).read())
+    assert set(listing) == {"items", "next"}

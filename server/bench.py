@@ -156,8 +156,10 @@ def _fps(app, sessions: int, seconds: float) -> list[float]:
 def run(args: argparse.Namespace) -> int:
     from kinetix.levels import load_level
     from server.app import App, Config
+    from server.memory import keep_frame_buffers_resident
 
     level_file = load_level(LEVEL)
+    keep_frame_buffers_resident()  # as the server does at start, so draw_ms is the server's draw time
     _print("draw_ms_512", _draw_ms(level_file), "ms", args.json)
     app = App(Config(port=0, max_sessions=args.sessions + 2, warm_sizes=(level_file.size.name,), level=str(LEVEL),
                      gallery=False)).start()

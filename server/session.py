@@ -31,6 +31,40 @@ JPEG_QUALITY = 85
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke."}
 
 
+class PlayListener:
+    """Told about every play of every session (recordings, agent overlays); add with SessionManager.add_listener.
+
+    All methods run on the session's play thread (or the caller's, for play_started) with the session's lock
+    held, so they must be quick and must not block: hand heavy work to a thread. Override what you need.
+    """
+
+    def play_started(self, session: Session, level_file, params) -> None:
+        """A play began from `level_file` (the edited level, or the opened one) with these env params."""
+
+    def play_stepped(self, session: Session, action: np.ndarray, state, result) -> None:
+        """One agent step was taken: the action used, the env state after it and its play.StepResult."""
+
+    def frame_pushed(self, session: Session, jpeg: bytes, frame: np.ndarray) -> None:
+        """A play frame (not an edit frame) went to the tab: its JPEG bytes and RGB pixels."""
+
+    def play_ended(self, session: Session, result: str, steps: int, seconds: float) -> None:
+        """The episode ended ("solved" | "failed" | "truncated" | "nan"), or was stopped ("stopped")."""
+
+
+class Controller:
+    """Chooses actions instead of the keyboard while it is set on a playing session (e.g. an agent)."""
+
+    player = "agent"  # who plays, as play records and recordings name it
+
+    def act(self, state, params) -> np.ndarray:
+        """The multi-discrete action (as play.action_from_keys returns) for this env state."""
+        raise NotImplementedError
+
+    def hud(self) -> str:
+        """Extra text for the play HUD (e.g. the action per binding and the value estimate); '' for none."""
+        return ""
+
+
 def default_editor_factory() -> Callable:
     """server.editor.Editor (CONTRACT section 3); without that package, a play-only stand-in so serving still works."""
     try:
@@ -122,6 +156,7 @@ class Session:
         self._view = draw.View(512, 512)
         self.author_token: str | None = None  # the tab's gallery author token (from localStorage, via /keys)
         self.gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
+        self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self._build_gui()
         self._wire_pointer()
         self.refresh(force=True)
@@ -270,11 +305,21 @@ class Session:
             else:
                 self.stop()
 
-    def play(self) -> None:
-        """Start playing from the edited level (the editor itself is not changed by playing)."""
+    @property
+    def player(self) -> str:
+        """Who plays now: "human", or the controller's name (e.g. "agent:general")."""
+        return self.controller.player if self.controller is not None else "human"
+
+    def play(self, controller: Controller | None = None) -> None:
+        """Start playing from the edited level (the editor itself is not changed by playing).
+
+        With a controller, it chooses every action (the keyboard drives nothing) until the play stops.
+        """
         with self.lock:
             if self.closed:
                 return
+            if self.mode != "edit":
+                self.stop()
             try:
                 level_file = self.editor.level_file()
             except Exception as error:  # e.g. the level does not build; say why instead of playing
@@ -286,7 +331,9 @@ class Session:
             self._play = (stepper, state, params)
             self._steps, self._result, self._message = 0, None, None
             self._step_request = False
+            self.controller = controller
             self.mode = "play"
+            self.manager.notify("play_started", self, level_file, params)
             self._set_buttons()
             self._start_thread()
             self._wake.set()
@@ -296,8 +343,13 @@ class Session:
         with self.lock:
             if self.mode == "edit":
                 return
+            if self.mode != "ended":  # stopped by the player before the episode ended
+                stepper, _, params = self._play
+                self.manager.notify("play_ended", self, "stopped", self._steps,
+                                    self._steps * float(params.sim.dt) * stepper.frame_skip)
             self.mode = "edit"
             self._play = None
+            self.controller = None
             self.held.clear()
             self._set_buttons()
             self._wake.set()
@@ -367,17 +419,29 @@ class Session:
             self._wake.clear()
 
     def _advance(self, stepper, state, params, *, ack: bool) -> None:
-        state, result = stepper.step(state, action_from_keys(self.held), params)
+        if self.controller is not None:
+            try:
+                action = np.asarray(self.controller.act(state, params), np.int32)
+            except Exception:  # a broken controller stops its play instead of killing the loop
+                log.exception("controller %s failed", self.controller.player)
+                self._message = f"{self.controller.player} failed; see the server log"
+                self.stop()
+                return
+        else:
+            action = action_from_keys(self.held)
+        state, result = stepper.step(state, action, params)
         self._play = (stepper, state, params)
         self._steps = result.timestep
+        self.manager.notify("play_stepped", self, action, state, result)
         if result.terminated or result.truncated:
             self._result = "solved" if result.solved else "failed" if result.failed else (
                 "truncated" if result.truncated else "nan")
             self.mode = "ended"
             self.held.clear()
             self._set_buttons()
+            seconds = result.timestep * float(params.sim.dt) * stepper.frame_skip
+            self.manager.notify("play_ended", self, self._result, result.timestep, seconds)
             if self.manager.on_play_end is not None:  # e.g. the gallery's play statistics; off the play thread
-                seconds = result.timestep * float(params.sim.dt) * stepper.frame_skip
                 threading.Thread(target=self.manager.on_play_end, args=(self, self._result, result.timestep, seconds),
                                  daemon=True).start()
         self._push_frame(ack=ack)
@@ -401,6 +465,8 @@ class Session:
             return f"EDIT  tool: {getattr(self.editor, 'tool', '?')}   Space: play"
         stepper, state, params = self._play
         seconds = self._steps * float(params.sim.dt) * stepper.frame_skip
+        if self.controller is not None:
+            return f"{self.mode.upper()}  {self.player}  step {self._steps}  {seconds:.2f} s  {self.controller.hud()}"
         held = " ".join(sorted(self.held))
         return f"{self.mode.upper()}  step {self._steps}  {seconds:.2f} s  {held}"
 
@@ -446,6 +512,8 @@ class Session:
                 self._ack.content = f'<div id="kinetix-ack" data-seq="{self.last_key_seq}" hidden></div>'
         client.flush()
         self.frames_sent += 1
+        if self.mode != "edit":
+            self.manager.notify("frame_pushed", self, data, frame)
 
     def _push_ack(self, seq: int) -> None:
         if seq >= 0:
@@ -480,6 +548,7 @@ class SessionManager:
         self.on_session_gui: Callable[[Session], None] | None = None  # adds GUI to a new session (the gallery's)
         # (session, "solved" | "failed" | "truncated" | "nan", steps, seconds) after every finished play.
         self.on_play_end: Callable[[Session, str, int, float], None] | None = None
+        self.listeners: list[PlayListener] = []  # see PlayListener; add with add_listener
         self.max_sessions = max_sessions
         self.initial_level = initial_level  # (client) -> LevelFile | None, e.g. from ?level= (gallery)
         self._lock = threading.Lock()
@@ -540,6 +609,17 @@ class SessionManager:
                 self._gone.add(client.client_id)
         if session is not None:
             session.close()
+
+    def add_listener(self, listener: PlayListener) -> None:
+        self.listeners.append(listener)
+
+    def notify(self, event: str, session: Session, *args) -> None:
+        """Call `event` on every listener; a failing listener is logged and never breaks the play."""
+        for listener in self.listeners:
+            try:
+                getattr(listener, event)(session, *args)
+            except Exception:
+                log.exception("play listener %s.%s failed", type(listener).__name__, event)
 
     def session_by_nonce(self, nonce: str) -> Session | None:
         with self._lock:

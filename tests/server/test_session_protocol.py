@@ -14,6 +14,7 @@ from fake_editor import FakeEditor, falling_win_spec
 from PIL import Image
 from viser_client import KeysSocket, session_nonce
 
+from server.session import Controller, PlayListener
 from tests.server.conftest import running_app
 
 EDITORS: list[FakeEditor] = []
@@ -195,3 +196,81 @@ def test_sessions_past_the_cap_get_a_clear_message(app, make_client):
     assert not any(m["type"] == "GuiHtmlMessage" and "kinetix-session" in m["props"]["content"] for m in extra.messages)
     clients[0].close()
     _wait(lambda: len(app.manager.sessions) == app.manager.max_sessions - 1)
+
+
+class _Log(PlayListener):
+    def __init__(self):
+        self.events = []
+
+    def play_started(self, session, level_file, params):
+        self.events.append(("started", session.player))
+
+    def play_stepped(self, session, action, state, result):
+        self.events.append(("stepped", tuple(int(a) for a in action)))
+
+    def frame_pushed(self, session, jpeg, frame):
+        self.events.append(("frame", jpeg[:2], frame.shape))
+
+    def play_ended(self, session, result, steps, seconds):
+        self.events.append(("ended", result, steps))
+
+
+class _Always(Controller):
+    player = "agent:test"
+
+    def __init__(self, action):
+        self.action, self.calls = action, 0
+
+    def act(self, state, params):
+        self.calls += 1
+        return self.action
+
+    def hud(self):
+        return "motor0 +1"
+
+
+def test_listeners_see_each_play_and_a_controller_drives_it(app, make_client):
+    log = _Log()
+    app.manager.add_listener(log)
+    try:
+        client = make_client(app)
+        session, nonce = _session(app, client)
+        keys = KeysSocket(app.port, nonce)
+        try:
+            controller = _Always(np.array([2, 0, 0, 0, 0, 0], np.int32))
+            session.play(controller=controller)
+            keys.down("ArrowLeft")  # ignored while a controller plays: every step uses its action
+            _wait(lambda: session.mode == "ended", timeout=20)
+            assert session.player == "agent:test" and "agent:test" in session.hud() and "motor0 +1" in session.hud()
+            keys.up("ArrowLeft")
+        finally:
+            keys.close()
+        events = [e for e in log.events if e[0] != "frame"]  # the result banner's frame follows the end
+        assert events[0] == ("started", "agent:test") and events[-1][0] == "ended"
+        steps = [e for e in events if e[0] == "stepped"]
+        assert len(steps) == controller.calls == events[-1][2] and all(e[1] == (2, 0, 0, 0, 0, 0) for e in steps)
+        assert events[-1][1] == "solved"
+        frames = [e for e in log.events if e[0] == "frame"]
+        assert frames and all(e[1] == b"\xff\xd8" and e[2][2] == 3 for e in frames)
+        # A human play stopped early ends as "stopped", and the controller is gone.
+        log.events.clear()
+        session.play()
+        _wait(lambda: any(e[0] == "stepped" for e in log.events))
+        session.stop()
+        assert session.controller is None and session.player == "human"
+        events = [e for e in log.events if e[0] != "frame"]
+        assert events[0] == ("started", "human") and events[-1][:2] == ("ended", "stopped")
+    finally:
+        app.manager.listeners.remove(log)
+
+
+def test_a_failing_controller_stops_its_play_with_a_message(app, make_client):
+    class Broken(Controller):
+        def act(self, state, params):
+            raise RuntimeError("boom")
+
+    client = make_client(app)
+    session, _ = _session(app, client)
+    session.play(controller=Broken())
+    _wait(lambda: session.mode == "edit")
+    assert "agent failed" in session._message and session.controller is None

@@ -36,6 +36,7 @@ class Config:
     db: str | None = None
     max_sessions: int = 8
     warm_sizes: tuple[str, ...] = ("s", "m", "l")  # compile the play step for these before serving
+    warm_batches: bool = True  # then compile their batched steps (several tabs playing at once) in the background
     gallery: bool = True  # include the gallery router when server.gallery is installed
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
@@ -88,6 +89,8 @@ class App:
             t0 = time.perf_counter()
             play.warm_up((size,))
             log.info("compiled the play step for size %s in %.1f s", size, time.perf_counter() - t0)
+        if self.config.warm_batches:
+            play.warm_batches_in_background(self.config.warm_sizes)
         keep_frame_buffers_resident()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
             self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
@@ -136,8 +139,12 @@ class App:
         return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
 
     def stop(self) -> None:
+        from server import play
+
         if self.manager is not None:
             self.manager.close_all()
+        if not play.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
+            log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
         if self._thread is not None:

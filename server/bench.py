@@ -6,7 +6,8 @@
   server puts the key's sequence number in a hidden element in the same batch as the frame), p50 and p90;
 - key-to-wire latency: the same, ending when a headless protocol client receives that batch (server side only);
 - fps delivered to one tab and to each of 8 concurrent playing sessions, counted at the websocket by headless
-  protocol clients (browser tabs with software WebGL would measure the 2-core machine's CPU, not the server);
+  protocol clients in a child process (browser tabs with software WebGL would measure the 2-core machine's
+  CPU, not the server);
 - peak RSS of this process (the server) while 8 sessions play.
 """
 
@@ -126,31 +127,58 @@ def _wire_latency(app, samples: int) -> list[float]:
 
 
 def _fps(app, sessions: int, seconds: float) -> list[float]:
-    """Frames per second received by each of `sessions` protocol clients while all play."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
-    from viser_client import ViserTestClient  # the headless client of the protocol tests
+    """Frames per second received by each of `sessions` protocol clients while all play.
 
-    clients = [ViserTestClient(app.viser.get_port(), 640, 480) for _ in range(sessions)]
+    The clients run in a child process: tabs are not part of the server, and decoding 8 streams in the server's
+    own process would charge their work to the server's interpreter lock.
+    """
+    import subprocess
+
+    child = subprocess.Popen([sys.executable, "-c", "from server.bench import client_process; client_process()",
+                              str(app.viser.get_port()), str(sessions), str(seconds)],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                             cwd=Path(__file__).resolve().parents[1])
     try:
-        for client in clients:
-            client.wait_frame(timeout=30)
+        if child.stdout.readline().strip() != "connected":
+            raise RuntimeError("the benchmark's client process did not connect")
         deadline = time.monotonic() + 30
         while len(app.manager.sessions) < sessions and time.monotonic() < deadline:
             time.sleep(0.05)
         for session in list(app.manager.sessions.values()):
             session.play()
         time.sleep(0.5)
-        starts = [client.count() for client in clients]
-        t0 = time.monotonic()
-        time.sleep(seconds)
-        elapsed = time.monotonic() - t0
-        return [len(client.frames(start)) / elapsed for client, start in zip(clients, starts, strict=True)]
+        child.stdin.write("go\n")
+        child.stdin.flush()
+        rates = json.loads(child.stdout.readline())
+        child.wait(timeout=30)
+        return rates
     finally:
-        for client in clients:
-            client.close()
+        if child.poll() is None:
+            child.kill()
         deadline = time.monotonic() + 10
         while app.manager.sessions and time.monotonic() < deadline:
             time.sleep(0.05)
+
+
+def client_process() -> None:
+    """Child of _fps: argv = viser port, number of tabs, seconds; prints "connected", waits for "go", then the
+    frames per second each tab received as a JSON list."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
+    from viser_client import ViserTestClient  # the headless client of the protocol tests
+
+    port, sessions, seconds = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+    clients = [ViserTestClient(port, 640, 480) for _ in range(sessions)]
+    for client in clients:
+        client.wait_frame(timeout=30)
+    print("connected", flush=True)
+    sys.stdin.readline()
+    starts = [client.count() for client in clients]
+    t0 = time.monotonic()
+    time.sleep(seconds)
+    elapsed = time.monotonic() - t0
+    print(json.dumps([len(c.frames(start)) / elapsed for c, start in zip(clients, starts, strict=True)]), flush=True)
+    for client in clients:
+        client.close()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -163,6 +191,9 @@ def run(args: argparse.Namespace) -> int:
     _print("draw_ms_512", _draw_ms(level_file), "ms", args.json)
     app = App(Config(port=0, max_sessions=args.sessions + 2, warm_sizes=(level_file.size.name,), level=str(LEVEL),
                      gallery=False)).start()
+    from server import play
+
+    play.wait_for_compiles()  # the batched steps compile in the background after start; measure after that
     try:
         if Path(args.chromium).exists():
             lat = sorted(_latency(app, args.chromium, args.samples))

@@ -11,6 +11,7 @@ A/D binding 3; keys 1 and 2 fire thruster bindings 0 and 1 while held. Opposite 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 
 import numpy as np
@@ -24,6 +25,12 @@ MOTOR_KEYS: dict[str, tuple[int, int]] = {
 }
 THRUSTER_KEYS: dict[str, int] = {"Digit1": 0, "Digit2": 1, "Numpad1": 0, "Numpad2": 1}
 PLAY_KEYS = frozenset(MOTOR_KEYS) | frozenset(THRUSTER_KEYS)
+# Batched steps are compiled for these batch sizes; a batch is padded up to the next one (a larger batch is
+# split). Each size is one more compile (10-15 s cold, about 1 s from the persistent cache), done in the
+# background the first time that many sessions of a size class play at once; until then they step one by one.
+BATCH_BUCKETS = (4, 8)
+
+log = logging.getLogger(__name__)
 
 
 def action_from_keys(held: set[str] | frozenset[str]) -> np.ndarray:
@@ -62,6 +69,10 @@ class Stepper:
         self.env = make_env(EnvConfig(size=size, frame_skip=frame_skip), empty_level(size))
         self._transition = jax.jit(self.env.transition)
         self._initial = jax.jit(self._initial_state)
+        self._batched: dict[int, object] = {}  # bucket -> compiled batched transition, once ready
+        self._compiling: set[int] = set()
+        self._failed: set[int] = set()  # compiles that failed are not retried (logged once)
+        self._lock = threading.Lock()
 
     @staticmethod
     def _initial_state(level):
@@ -89,6 +100,83 @@ class Stepper:
         return next_state, StepResult(float(reward), bool(terminated), bool(truncated), bool(solved), bool(failed),
                                       int(timestep))
 
+    def step_many(self, states: list, actions: list[np.ndarray], params: list) -> list[tuple[object, StepResult]]:
+        """`step` for several independent plays at once: one compiled call per batch when its size is compiled.
+
+        The plays may be different levels of this size class. States are stacked and split inside the compiled
+        function, so the host passes and receives plain per-play states. Until the batch size's program is
+        compiled (in the background, on first need) the plays step one by one, so nobody waits for a compile.
+        """
+        import jax
+
+        results: list[tuple[object, StepResult]] = []
+        start = 0
+        while start < len(states):
+            n = min(len(states) - start, BATCH_BUCKETS[-1])
+            chunk = slice(start, start + n)
+            start += n
+            bucket = next(b for b in BATCH_BUCKETS if b >= n) if n > 1 else 1
+            fn = self._batched_fn(bucket) if bucket > 1 else None
+            if fn is None:
+                results += [self.step(s, a, p) for s, a, p in zip(states[chunk], actions[chunk], params[chunk],
+                                                                  strict=True)]
+                continue
+            pad = bucket - n  # padded with copies of the first play; their results are dropped
+            outs = fn(tuple(states[chunk]) + (states[chunk.start],) * pad,
+                      np.stack(list(actions[chunk]) + [actions[chunk.start]] * pad),
+                      tuple(params[chunk]) + (params[chunk.start],) * pad)
+            next_states, numbers = outs
+            reward, terminated, truncated, solved, failed, timestep = jax.device_get(numbers)
+            results += [(next_states[i], StepResult(float(reward[i]), bool(terminated[i]), bool(truncated[i]),
+                                                    bool(solved[i]), bool(failed[i]), int(timestep[i])))
+                        for i in range(n)]
+        return results
+
+    def _batched_fn(self, bucket: int):
+        """The compiled batched transition for `bucket` plays, or None while it compiles (started on first ask)."""
+        with self._lock:
+            fn = self._batched.get(bucket)
+            if fn is not None or bucket in self._compiling or bucket in self._failed:
+                return fn
+            self._compiling.add(bucket)
+        _start_compile(self._compile_batched, bucket)
+        return None
+
+    def _compile_batched(self, bucket: int) -> None:
+        import time
+
+        import jax
+        import jax.numpy as jnp
+
+        transition = self.env.transition
+
+        def many(states, actions, params):
+            stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+            batched = jax.vmap(transition)(jax.tree.map(stack, *states), actions, jax.tree.map(stack, *params))
+            next_state, reward, terminated, truncated, info = batched
+            split = tuple(jax.tree.map(lambda x, i=i: x[i], next_state) for i in range(bucket))
+            return split, (reward, terminated, truncated, info["solved"], info["failed"], info["timestep"])
+
+        try:
+            t0 = time.perf_counter()
+            fn = jax.jit(many)
+            # Compile with real shapes: a fresh episode of the empty level, as warm_up does.
+            from kinetix.level import LevelFile, LevelParams, empty_level
+
+            state, params = self.start(LevelFile(empty_level(self.size), LevelParams(frame_skip=self.frame_skip)))
+            jax.block_until_ready(fn((state,) * bucket, np.zeros((bucket, 6), np.int32), (params,) * bucket))
+            log.info("compiled the %d-play batched step for size %s in %.1f s", bucket, self.size.name,
+                     time.perf_counter() - t0)
+            with self._lock:
+                self._batched[bucket] = fn
+        except Exception:
+            log.exception("could not compile the %d-play batched step; plays step one by one", bucket)
+            with self._lock:
+                self._failed.add(bucket)
+        finally:
+            with self._lock:
+                self._compiling.discard(bucket)
+
     def warm_up(self) -> None:
         """Compile now (two steps: the second call can retrace when the level's dtypes settle)."""
         from kinetix.level import LevelFile, LevelParams, empty_level
@@ -97,6 +185,56 @@ class Stepper:
         state, params = self.start(level_file)
         for _ in range(2):
             state, _ = self.step(state, np.zeros(6, np.int32), params)
+
+
+_COMPILES: list[threading.Thread] = []  # background compiles (see wait_for_compiles)
+_COMPILES_LOCK = threading.Lock()
+
+
+def _start_compile(target, *args) -> threading.Thread:
+    # Not a daemon: interpreter exit waits for it (a compile cut off by shutdown aborts the whole process).
+    thread = threading.Thread(target=target, args=args, name="kinetix-compile")
+    with _COMPILES_LOCK:
+        _COMPILES[:] = [t for t in _COMPILES if t.is_alive()]
+        _COMPILES.append(thread)
+    thread.start()
+    return thread
+
+
+def wait_for_compiles(timeout: float | None = None) -> bool:
+    """Wait for background compiles to finish (server shutdown, benchmarks); False if some still run."""
+    import time
+
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        with _COMPILES_LOCK:
+            running = [t for t in _COMPILES if t.is_alive()]
+        if not running:
+            return True
+        left = None if deadline is None else deadline - time.monotonic()
+        if left is not None and left <= 0:
+            return False
+        running[0].join(timeout=left)
+
+
+def warm_batches_in_background(sizes=("s", "m", "l"), frame_skip: int = 2) -> None:
+    """Compile the batched play steps for these size classes one after another on a background thread, so
+    several tabs playing at once are batched from the start without holding up the server's start."""
+    from kinetix.level import LevelFile, LevelParams, empty_level, size_class
+
+    steppers = [stepper_for(LevelFile(empty_level(size_class(name)), LevelParams(frame_skip=frame_skip)))
+                for name in sizes]
+
+    def compile_all() -> None:
+        for stepper in steppers:
+            for bucket in BATCH_BUCKETS:
+                with stepper._lock:
+                    if bucket in stepper._batched or bucket in stepper._compiling or bucket in stepper._failed:
+                        continue
+                    stepper._compiling.add(bucket)
+                stepper._compile_batched(bucket)
+
+    _start_compile(compile_all)
 
 
 _STEPPERS: dict[tuple[str, int], Stepper] = {}

@@ -1,9 +1,11 @@
-"""One session per browser tab: its editor, play state, lock and play thread; and the manager that owns them.
+"""One session per browser tab: its editor, play state and lock; and the manager that owns them.
 
 Threading: viser runs plain callbacks on a thread pool and they can overlap, so every entry point takes the
-session's lock. Key events arrive from the side server's event loop (`key_event`), update the held-key set
-and wake the play thread at once; the play thread steps and pushes a frame right away and then flushes, so
-a key reaches the wire within a few milliseconds instead of waiting for the next tick.
+session's lock. Playing sessions are stepped and drawn by the manager's one play thread (server.scheduler),
+which batches sessions that are due together. Key events arrive from the side server's event loop
+(`key_event`), update the held-key set and wake the play thread at once; it steps that session and pushes a
+frame right away and then flushes, so a key reaches the wire within a few milliseconds instead of waiting for
+the next tick.
 
 Frames: rendered by server.draw at the canvas size (letterboxed, never stretched) and pushed as the scene
 background (JPEG). While playing: every agent step (30 per second for the default dt 1/60 and frame skip 2).
@@ -13,19 +15,23 @@ While editing: only when the editor's revision, the canvas size or the message c
 from __future__ import annotations
 
 import collections
+import concurrent.futures
+import dataclasses
 import logging
+import math
 import secrets
 import threading
-import time
 from collections.abc import Callable
 
 import numpy as np
 
 from server import draw
 from server.play import PLAY_KEYS, action_from_keys, stepper_for
+from server.scheduler import PlayScheduler
 
 log = logging.getLogger(__name__)
 
+BATCH_SLACK_S = 0.002  # sessions due within this much of each other step in one batch
 MAX_PIXELS = 1280 * 800  # larger canvases are rendered smaller at the same aspect ratio (the browser scales up)
 JPEG_QUALITY = 85
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke."}
@@ -34,8 +40,9 @@ RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time i
 class PlayListener:
     """Told about every play of every session (recordings, agent overlays); add with SessionManager.add_listener.
 
-    All methods run on the session's play thread (or the caller's, for play_started) with the session's lock
-    held, so they must be quick and must not block: hand heavy work to a thread. Override what you need.
+    play_started, play_stepped and play_ended run with the session's lock held (on the play thread, or the
+    caller's for play_started); frame_pushed runs on an encoder thread. All must be quick and must not block:
+    hand heavy work to a thread. Override what you need.
     """
 
     def play_started(self, session: Session, level_file, params) -> None:
@@ -45,7 +52,9 @@ class PlayListener:
         """One agent step was taken: the action used, the env state after it and its play.StepResult."""
 
     def frame_pushed(self, session: Session, jpeg: bytes, frame: np.ndarray) -> None:
-        """A play frame (not an edit frame) went to the tab: its JPEG bytes and RGB pixels."""
+        """A play frame (not an edit frame) went to the tab: its JPEG bytes and RGB pixels.
+
+        Runs on an encoder thread without the session's lock (frames are encoded in parallel with play)."""
 
     def play_ended(self, session: Session, result: str, steps: int, seconds: float) -> None:
         """The episode ended ("solved" | "failed" | "truncated" | "nan"), or was stopped ("stopped")."""
@@ -63,6 +72,20 @@ class Controller:
     def hud(self) -> str:
         """Extra text for the play HUD (e.g. the action per binding and the value estimate); '' for none."""
         return ""
+
+
+@dataclasses.dataclass
+class StepPlan:
+    """What the play scheduler should do for a session this tick (Session._plan)."""
+
+    kind: str  # "step" | "frame" (push a frame acknowledging a key) | "wait" | "drop" (no longer playing)
+    next_tick: float | None = None  # when the session is next due (perf_counter seconds), if it plays
+    stepper: object = None
+    state: object = None
+    params: object = None
+    action: np.ndarray | None = None
+    play_id: int = 0
+    ack: bool = False
 
 
 def default_editor_factory() -> Callable:
@@ -143,13 +166,15 @@ class Session:
         self.closed = False
         self.frames_sent = 0
         self.last_key_seq = -1
-        self._wake = threading.Event()
-        self._thread: threading.Thread | None = None
         self._play = None  # (stepper, state, params) while not editing
         self._result: str | None = None
         self._steps = 0
         self._step_request = False
         self._key_pending = False
+        self._play_id = 0  # counts plays, so a step computed for an earlier play is dropped
+        self._play_scene: draw.Scene | None = None  # the play's drawn scene (its static parts are reused per frame)
+        self._pending_push = None  # the Future of this session's frame being encoded and sent, if any
+        self._next_tick: float | None = None
         self._message: str | None = None
         self._pushed_key = None  # what the last edit-mode frame showed, to push only on change
         self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
@@ -278,14 +303,14 @@ class Session:
                 else:
                     self.held.discard(code)
                 self._key_pending = True
-                self._wake.set()
+                self.manager.scheduler.wake()
             elif kind == "down" and code == "Escape":
                 self.stop()
 
     def release_all_keys(self) -> None:
         with self.lock:
             self.held.clear()
-            self._wake.set()
+            self.manager.scheduler.wake()
 
     # ------------------------------------------------------------------ play control
 
@@ -333,10 +358,12 @@ class Session:
             self._step_request = False
             self.controller = controller
             self.mode = "play"
+            self._play_id += 1
+            self._next_tick = None
+            self._play_scene = None
             self.manager.notify("play_started", self, level_file, params)
             self._set_buttons()
-            self._start_thread()
-            self._wake.set()
+            self.manager.scheduler.add(self)
 
     def stop(self) -> None:
         """Back to editing; the edited level is shown again as it was before playing."""
@@ -352,7 +379,7 @@ class Session:
             self.controller = None
             self.held.clear()
             self._set_buttons()
-            self._wake.set()
+            self.manager.scheduler.wake()
             self.refresh(force=True)
 
     def play_again(self) -> None:
@@ -367,7 +394,7 @@ class Session:
             elif self.mode == "paused":
                 self.mode = "play"
             self._set_buttons()
-            self._wake.set()
+            self.manager.scheduler.wake()
 
     def single_step(self) -> None:
         with self.lock:
@@ -376,7 +403,7 @@ class Session:
                 self._set_buttons()
             if self.mode == "paused":
                 self._step_request = True
-                self._wake.set()
+                self.manager.scheduler.wake()
 
     def _set_buttons(self) -> None:
         editing = self.mode == "edit"
@@ -386,65 +413,75 @@ class Session:
         self._step_button.disabled = self.mode not in ("play", "paused")
         self._again_button.visible = self._edit_button.visible = self.mode == "ended"
 
-    # ------------------------------------------------------------------ the play loop
+    # ------------------------------------------------------------------ the play loop (run by server.scheduler)
 
-    def _start_thread(self) -> None:
-        if self._thread is None or not self._thread.is_alive():
-            self._thread = threading.Thread(target=self._loop, name=f"kinetix-play-{self.nonce[:6]}", daemon=True)
-            self._thread.start()
+    def _plan(self, now: float) -> StepPlan:
+        """Decide this tick: step (with the action to take), push a key-acknowledging frame, wait, or drop."""
+        with self.lock:
+            if self.closed or self.mode == "edit" or self._play is None:
+                return StepPlan("drop")
+            stepper, state, params = self._play
+            tick = float(params.sim.dt) * stepper.frame_skip
+            if self._next_tick is None:  # the first step comes at the next point of the shared tick grid
+                self._next_tick = math.ceil(now / tick) * tick
+            key_now, self._key_pending = self._key_pending, False
+            step_request, self._step_request = self._step_request, False
+            due = now >= self._next_tick - BATCH_SLACK_S
+            if not ((self.mode == "play" and (due or key_now)) or (self.mode == "paused" and step_request)):
+                if key_now:
+                    return StepPlan("frame", next_tick=self._playing_tick())
+                return StepPlan("wait", next_tick=self._playing_tick())
+            if self.mode == "play":
+                # A fixed schedule (not "now + tick") so the work of a frame does not lower the frame rate; a
+                # key-driven early step takes the coming slot; after a stall the schedule restarts on the grid.
+                late = now - self._next_tick >= tick
+                self._next_tick = math.ceil(now / tick) * tick + tick if late else self._next_tick + tick
+            action = self._choose_action(state, params)
+            if action is None:
+                return StepPlan("drop")
+            return StepPlan("step", next_tick=self._playing_tick(), stepper=stepper, state=state, params=params,
+                            action=action, play_id=self._play_id, ack=key_now)
 
-    def _loop(self) -> None:
-        next_tick = time.perf_counter()
-        while True:
-            with self.lock:
-                if self.closed or self.mode == "edit":
-                    self._thread = None
-                    return
-                stepper, state, params = self._play
-                tick = float(params.sim.dt) * stepper.frame_skip
-                key_now = self._key_pending
-                due = time.perf_counter() >= next_tick
-                run = (self.mode == "play" and (due or key_now)) or (self.mode == "paused" and self._step_request)
-                self._key_pending = False
-                self._step_request = False
-                if run:
-                    self._advance(stepper, state, params, ack=key_now)
-                    # A fixed schedule (not "now + tick") so the work of a frame does not lower the frame rate;
-                    # after a stall (or a key-driven early step) the schedule restarts from now.
-                    now = time.perf_counter()
-                    next_tick = next_tick + tick if now - next_tick < tick else now + tick
-                elif key_now:
-                    self._push_frame(ack=True)
-            self._wake.wait(timeout=max(0.0, next_tick - time.perf_counter()) if self.mode == "play" else 0.5)
-            self._wake.clear()
+    def _playing_tick(self) -> float | None:
+        return self._next_tick if self.mode == "play" else None
 
-    def _advance(self, stepper, state, params, *, ack: bool) -> None:
-        if self.controller is not None:
-            try:
-                action = np.asarray(self.controller.act(state, params), np.int32)
-            except Exception:  # a broken controller stops its play instead of killing the loop
-                log.exception("controller %s failed", self.controller.player)
-                self._message = f"{self.controller.player} failed; see the server log"
-                self.stop()
+    def _choose_action(self, state, params) -> np.ndarray | None:
+        if self.controller is None:
+            return action_from_keys(self.held)
+        try:
+            return np.asarray(self.controller.act(state, params), np.int32)
+        except Exception:  # a broken controller stops its play instead of breaking the loop
+            log.exception("controller %s failed", self.controller.player)
+            self._message = f"{self.controller.player} failed; see the server log"
+            self.stop()
+            return None
+
+    def _finish_step(self, plan: StepPlan, state, result) -> None:
+        """Take the stepped state (unless the play was stopped or restarted meanwhile) and push its frame."""
+        with self.lock:
+            if self.closed or self.mode == "edit" or plan.play_id != self._play_id:
                 return
-        else:
-            action = action_from_keys(self.held)
-        state, result = stepper.step(state, action, params)
-        self._play = (stepper, state, params)
-        self._steps = result.timestep
-        self.manager.notify("play_stepped", self, action, state, result)
-        if result.terminated or result.truncated:
-            self._result = "solved" if result.solved else "failed" if result.failed else (
-                "truncated" if result.truncated else "nan")
-            self.mode = "ended"
-            self.held.clear()
-            self._set_buttons()
-            seconds = result.timestep * float(params.sim.dt) * stepper.frame_skip
-            self.manager.notify("play_ended", self, self._result, result.timestep, seconds)
-            if self.manager.on_play_end is not None:  # e.g. the gallery's play statistics; off the play thread
-                threading.Thread(target=self.manager.on_play_end, args=(self, self._result, result.timestep, seconds),
-                                 daemon=True).start()
-        self._push_frame(ack=ack)
+            stepper, _, params = self._play
+            self._play = (stepper, state, params)
+            self._steps = result.timestep
+            self.manager.notify("play_stepped", self, plan.action, state, result)
+            if result.terminated or result.truncated:
+                self._result = "solved" if result.solved else "failed" if result.failed else (
+                    "truncated" if result.truncated else "nan")
+                self.mode = "ended"
+                self.held.clear()
+                self._set_buttons()
+                seconds = result.timestep * float(params.sim.dt) * stepper.frame_skip
+                self.manager.notify("play_ended", self, self._result, result.timestep, seconds)
+                if self.manager.on_play_end is not None:  # e.g. the gallery's play statistics; off the play thread
+                    threading.Thread(target=self.manager.on_play_end,
+                                     args=(self, self._result, result.timestep, seconds), daemon=True).start()
+            self._push_frame(ack=plan.ack, background=True)
+
+    def _push_ack_frame(self) -> None:
+        with self.lock:
+            if not self.closed and self.mode != "edit":
+                self._push_frame(ack=True, background=True)
 
     # ------------------------------------------------------------------ frames
 
@@ -483,7 +520,8 @@ class Session:
         if self.mode == "ended":
             seconds = self._steps * float(params.sim.dt) * stepper.frame_skip
             banner = f"{RESULT_TEXT[self._result]}\n{seconds:.2f} s, {self._steps} steps"
-        return draw.draw_frame(draw.scene_of(state.level), self._view, hud=self.hud(), banner=banner)
+        self._play_scene = draw.scene_of(state.level, static_from=self._play_scene)
+        return draw.draw_frame(self._play_scene, self._view, hud=self.hud(), banner=banner)
 
     def refresh(self, force: bool = False) -> None:
         """Push an edit-mode frame if anything visible changed (or `force`); play frames come from the loop."""
@@ -496,7 +534,12 @@ class Session:
             self._pushed_key = key
             self._push_frame()
 
-    def _push_frame(self, ack: bool = False) -> None:
+    def _push_frame(self, ack: bool = False, background: bool = False) -> None:
+        """Render now and send the frame; with `background`, encode and send it on the manager's encoder threads.
+
+        JPEG encoding releases the interpreter lock, so the play thread draws the next session's frame while this
+        one is encoded. A session's frames still go out in order: every push waits for its previous one.
+        """
         if self.closed:
             return
         try:
@@ -504,15 +547,32 @@ class Session:
         except Exception:
             log.exception("render failed")
             return
+        pending = self._pending_push
+        if pending is not None and not pending.done():
+            pending.result()  # the encoder never takes the session lock, so waiting here cannot deadlock
+        seq = self.last_key_seq if ack else None
+        playing = self.mode != "edit"
+        if background:
+            self._pending_push = self.manager.encoder.submit(self._send_frame, frame, seq, playing)
+        else:
+            self._send_frame(frame, seq, playing)
+
+    def _send_frame(self, frame: np.ndarray, ack_seq: int | None, playing: bool) -> None:
         client = self.client
-        data = draw.encode_jpeg(frame, JPEG_QUALITY)
-        with client.atomic():
-            _set_background_jpeg(client, data, frame)
-            if ack:
-                self._ack.content = f'<div id="kinetix-ack" data-seq="{self.last_key_seq}" hidden></div>'
-        client.flush()
+        if client is None or self.closed:
+            return
+        try:
+            data = draw.encode_jpeg(frame, JPEG_QUALITY)
+            with client.atomic():
+                _set_background_jpeg(client, data, frame)
+                if ack_seq is not None:
+                    self._ack.content = f'<div id="kinetix-ack" data-seq="{ack_seq}" hidden></div>'
+            client.flush()
+        except Exception:  # e.g. the tab went away mid-send
+            log.debug("frame not sent", exc_info=True)
+            return
         self.frames_sent += 1
-        if self.mode != "edit":
+        if playing:
             self.manager.notify("frame_pushed", self, data, frame)
 
     def _push_ack(self, seq: int) -> None:
@@ -528,10 +588,7 @@ class Session:
             self.mode = "edit"
             self._play = None
             self.held.clear()
-            self._wake.set()
-            thread = self._thread
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=2.0)
+            self.manager.scheduler.wake()  # it drops this session on its next look
         self.panel = None
         self.client = None
 
@@ -549,6 +606,9 @@ class SessionManager:
         # (session, "solved" | "failed" | "truncated" | "nan", steps, seconds) after every finished play.
         self.on_play_end: Callable[[Session, str, int, float], None] | None = None
         self.listeners: list[PlayListener] = []  # see PlayListener; add with add_listener
+        self.scheduler = PlayScheduler()  # the one thread that steps and draws every playing session
+        # Play frames are JPEG-encoded and sent here, in parallel with the play thread drawing the next one.
+        self.encoder = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="kinetix-frames")
         self.max_sessions = max_sessions
         self.initial_level = initial_level  # (client) -> LevelFile | None, e.g. from ?level= (gallery)
         self._lock = threading.Lock()
@@ -632,3 +692,5 @@ class SessionManager:
             self.by_nonce.clear()
         for session in sessions:
             session.close()
+        self.scheduler.close()
+        self.encoder.shutdown(wait=True, cancel_futures=True)

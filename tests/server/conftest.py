@@ -17,7 +17,8 @@ LEVELS = Path(__file__).resolve().parents[2] / "levels"
 def running_app(**config):
     from server.app import App, Config
 
-    app = App(Config(**{"port": 0, "gallery": False, **config})).start()
+    # No background compiles of batched steps: tests that need them ask for them (test_play_batch.py).
+    app = App(Config(**{"port": 0, "gallery": False, "warm_batches": False, **config})).start()
     try:
         yield app
     finally:

@@ -523,7 +523,7 @@ class Editor:
         joints = [properties.joint_fields(self.spec, i) for k, i in self.selection if k == "joint"]
         thrusters = [properties.thruster_fields(self.spec, i) for k, i in self.selection if k == "thruster"]
         return {"bodies": bodies, "joints": joints, "thrusters": thrusters, "gravity": tuple(self.spec.gravity),
-                "size": self.size.name}
+                "size": self.size.name, "params": dataclasses.asdict(self.spec.params)}
 
     def set_properties(self, **values) -> str | None:
         spec = self._candidate()
@@ -542,6 +542,16 @@ class Editor:
                 return self._say(f"gravity must be finite numbers within +-1000, got ({gx!r}, {gy!r})")
         spec = self._candidate()
         spec.gravity = (float(gx), float(gy))
+        return None if spec == self.spec else self._commit(spec)
+
+    def set_params(self, **values) -> str | None:
+        """Change episode and physics settings (LevelParams fields); one undo step. Returns the refusal or None."""
+        try:
+            params = properties.checked_params(self.spec.params, values)
+        except ValueError as error:
+            return self._say(str(error))
+        spec = self._candidate()
+        spec.params = params
         return None if spec == self.spec else self._commit(spec)
 
     def set_size(self, size: str) -> str | None:

@@ -62,11 +62,18 @@ class EditorPanel:
         handle.on_update(lambda _: self._act(lambda: self.editor.set_properties(**{name: convert(handle.value)})))
         return handle
 
+    def _param(self, handle, name: str, convert):
+        """A level-settings widget: edits go to Editor.set_params, and refresh shows the level's value."""
+        handle.on_update(lambda _: self._act(lambda: self.editor.set_params(**{name: convert(handle.value)})))
+        self.param_widgets[name] = handle
+        return handle
+
     # ------------------------------------------------------------ widgets
 
     def _build(self) -> None:
         gui, ed = self.gui, self.editor
         self.buttons: dict[str, viser.GuiButtonHandle] = {}
+        self.param_widgets: dict[str, object] = {}
         self.tools = gui.add_button_group("Tool", [TOOL_LABELS[t] for t in TOOLS])
         self.tools.on_click(lambda event: self._act(lambda: ed.set_tool(TOOL_OF_LABEL[event.target.value])))
         self.tool_line = gui.add_markdown("")
@@ -124,6 +131,27 @@ class EditorPanel:
             self.size = gui.add_dropdown("Size class", tuple(SIZES),
                                          initial_value=ed.size.name if ed.size.name in SIZES else "l")
             self.size.on_update(lambda _: self._act(lambda: ed.set_size(self.size.value)))
+            params = ed.properties()["params"]
+            self.max_timesteps = self._param(gui.add_number("Time limit (steps)", params["max_timesteps"], min=1,
+                                                            max=100_000, step=1, hint="episode length in agent steps"),
+                                             "max_timesteps", int)
+            self.frame_skip = self._param(gui.add_number("Frame skip", params["frame_skip"], min=1, max=16, step=1,
+                                                         hint="physics steps per agent step (a new value compiles "
+                                                              "once on the next play)"), "frame_skip", int)
+            self.dense_reward_scale = self._param(gui.add_number("Shaping scale", params["dense_reward_scale"],
+                                                                 min=0.0, max=10.0, step=0.01,
+                                                                 hint="weight of the dense distance reward"),
+                                                  "dense_reward_scale", float)
+            with gui.add_folder("Physics", expand_by_default=False):
+                self.dt = self._param(gui.add_number("Time step (s)", params["dt"], min=0.001, max=0.1, step=0.0001),
+                                      "dt", float)
+                self.base_motor_speed = self._param(gui.add_number("Motor speed scale", params["base_motor_speed"],
+                                                                   min=0.0, step=0.1), "base_motor_speed", float)
+                self.base_motor_power = self._param(gui.add_number("Motor power scale", params["base_motor_power"],
+                                                                   min=0.0, step=1.0), "base_motor_power", float)
+                self.base_thruster_power = self._param(gui.add_number("Thruster power scale",
+                                                                      params["base_thruster_power"], min=0.0, step=0.1),
+                                                       "base_thruster_power", float)
             self.seed = gui.add_number("Seed", random.randrange(1 << 16), min=0, step=1)
             self._button("New level", lambda: ed.new_level(self.size.value), "walls only, in the chosen size")
             self._button("Shake it up", lambda: ed.shake_it_up(self._next_seed()), "apply random mutators")
@@ -195,6 +223,8 @@ class EditorPanel:
             self.redo_button.disabled = not ed.can_redo
             props = ed.properties()
             self.gravity.value = tuple(float(g) for g in props["gravity"])
+            for name, widget in self.param_widgets.items():
+                widget.value = props["params"][name]
             if props["size"] in SIZES:
                 self.size.value = props["size"]
             self.snapping.value = ed.snapping

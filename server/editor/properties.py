@@ -121,3 +121,36 @@ def apply(spec: LevelSpec, bodies: list[int], joints: list[int], thrusters: list
             t.angle = world - spec.bodies[t.body].angle
         if "thruster_binding" in values:
             t.binding = _choice("thruster binding", values["thruster_binding"], NUM_THRUSTER_BINDINGS)
+
+
+# Episode and physics settings (kinetix.level.LevelParams) with the ranges the editor accepts. Frame skip and the
+# time step change the compiled play step, so a new value compiles once on the next play (10-15 s cold).
+PARAM_RANGES: dict[str, tuple[type, float, float]] = {
+    "max_timesteps": (int, 1, 100_000),
+    "frame_skip": (int, 1, 16),
+    "dense_reward_scale": (float, 0.0, 10.0),
+    "dt": (float, 1.0 / 1000.0, 1.0 / 10.0),
+    "base_motor_speed": (float, 0.0, 1_000.0),
+    "base_motor_power": (float, 0.0, 1_000_000.0),
+    "base_thruster_power": (float, 0.0, 100_000.0),
+}
+
+
+def checked_params(params, values: dict):
+    """`params` (a LevelParams) with `values` set; ValueError names an unknown field or a value out of range."""
+    import dataclasses
+
+    changes = {}
+    for name, value in values.items():
+        if name not in PARAM_RANGES:
+            raise ValueError(f"unknown level setting {name!r}; known: {', '.join(PARAM_RANGES)}")
+        kind, low, high = PARAM_RANGES[name]
+        if kind is int:
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+            changes[name] = value
+        else:
+            changes[name] = _number(name, value, low, high)
+    return dataclasses.replace(params, **changes)

@@ -197,3 +197,26 @@ def test_keys_not_consumed(ed):
     assert not ed.key("ArrowLeft")
     assert not ed.key("q", ctrl=True)
     assert not ed.key("Enter")  # no polygon in progress
+
+
+def test_episode_and_physics_settings_are_edited_validated_and_undone(ed):
+    assert ed.set_params(max_timesteps=500, frame_skip=3, dense_reward_scale=0.0) is None
+    file = ed.level_file()
+    assert (file.params.max_timesteps, file.params.frame_skip, file.params.dense_reward_scale) == (500, 3, 0.0)
+    assert ed.properties()["params"]["max_timesteps"] == 500
+    assert ed.set_params(dt=1 / 120, base_motor_power=450.0) is None
+    assert ed.level_file().params.dt == 1 / 120 and ed.level_file().params.base_motor_power == 450.0
+    # Saved and read back in our format.
+    assert '"max_timesteps": 500' in ed.export("ours")
+    for bad, words in [({"frame_skip": 0}, "frame_skip must be an integer in [1, 16]"),
+                       ({"max_timesteps": 2.5}, "max_timesteps must be an integer"),
+                       ({"dt": float("nan")}, "dt must be a finite number"),
+                       ({"dense_reward_scale": -1.0}, "dense_reward_scale must be in"),
+                       ({"gravity_scale": 1.0}, "unknown level setting 'gravity_scale'")]:
+        message = ed.set_params(**bad)
+        assert message is not None and words in message, (bad, message)
+    assert ed.level_file().params.frame_skip == 3  # refused edits change nothing
+    ed.undo()
+    assert ed.level_file().params.dt == 1 / 60
+    ed.undo()
+    assert ed.level_file().params.max_timesteps == 256 and ed.level_file().params.frame_skip == 2

@@ -102,6 +102,12 @@ def test_level_settings_limits_and_messages(setup):
     panel, editor, _, _ = setup
     panel.gravity.value = (0.0, -4.0)
     assert editor.spec.gravity == (0.0, -4.0)
+    panel.param_widgets["max_timesteps"].value = 400
+    panel.param_widgets["dt"].value = 0.01
+    assert (editor.spec.params.max_timesteps, editor.spec.params.dt) == (400, 0.01)
+    panel.param_widgets["frame_skip"].value = 0  # out of range: refused with a message, the widget shows the level
+    assert "frame_skip must be an integer" in panel.message.content
+    assert editor.spec.params.frame_skip == 2 and panel.param_widgets["frame_skip"].value == 2
     assert panel.limits_line.content == "**Left:** 8 polygons, 4 circles, 6 joints, 2 thrusters"
     panel.size.value = "s"
     assert editor.size.name == "s"

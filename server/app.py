@@ -89,9 +89,12 @@ class App:
             t0 = time.perf_counter()
             play.warm_up((size,))
             log.info("compiled the play step for size %s in %.1f s", size, time.perf_counter() - t0)
-        if self.config.warm_batches:
-            play.warm_batches_in_background(self.config.warm_sizes)
-        keep_frame_buffers_resident()
+        # The malloc thresholds that keep frame buffers resident also keep XLA's compile-time memory: set them
+        # after the background compiles (measured peak RSS, sizes s/m/l, 8 tabs: 1433 MB before, 1209 MB after).
+        if self.config.warm_batches and self.config.warm_sizes:
+            play.warm_batches_in_background(self.config.warm_sizes, then=keep_frame_buffers_resident)
+        else:
+            keep_frame_buffers_resident()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
             self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
         self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)

@@ -26,9 +26,11 @@ MOTOR_KEYS: dict[str, tuple[int, int]] = {
 THRUSTER_KEYS: dict[str, int] = {"Digit1": 0, "Digit2": 1, "Numpad1": 0, "Numpad2": 1}
 PLAY_KEYS = frozenset(MOTOR_KEYS) | frozenset(THRUSTER_KEYS)
 # Batched steps are compiled for these batch sizes; a batch is padded up to the next one (a larger batch is
-# split). Each size is one more compile (10-15 s cold, about 1 s from the persistent cache), done in the
-# background the first time that many sessions of a size class play at once; until then they step one by one.
-BATCH_BUCKETS = (4, 8)
+# split). Each size is one more compile (8-15 s cold, about 1 s from the persistent cache, and a few hundred MB
+# of peak memory while it runs), done in the background after start; until then plays step one by one.
+BATCH_BUCKETS = (8,)
+MIN_BATCH = 3  # fewer plays step one by one: padding 2 plays to 8 costs more than it saves (size m: 3.6 ms
+               # one by one, 4.1 ms as a batch of 8)
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +117,7 @@ class Stepper:
             n = min(len(states) - start, BATCH_BUCKETS[-1])
             chunk = slice(start, start + n)
             start += n
-            bucket = next(b for b in BATCH_BUCKETS if b >= n) if n > 1 else 1
+            bucket = next(b for b in BATCH_BUCKETS if b >= n) if n >= MIN_BATCH else 1
             fn = self._batched_fn(bucket) if bucket > 1 else None
             if fn is None:
                 results += [self.step(s, a, p) for s, a, p in zip(states[chunk], actions[chunk], params[chunk],
@@ -217,9 +219,10 @@ def wait_for_compiles(timeout: float | None = None) -> bool:
         running[0].join(timeout=left)
 
 
-def warm_batches_in_background(sizes=("s", "m", "l"), frame_skip: int = 2) -> None:
+def warm_batches_in_background(sizes=("s", "m", "l"), frame_skip: int = 2, then=None) -> None:
     """Compile the batched play steps for these size classes one after another on a background thread, so
-    several tabs playing at once are batched from the start without holding up the server's start."""
+    several tabs playing at once are batched from the start without holding up the server's start; then call
+    `then()` (if given) on that thread."""
     from kinetix.level import LevelFile, LevelParams, empty_level, size_class
 
     steppers = [stepper_for(LevelFile(empty_level(size_class(name)), LevelParams(frame_skip=frame_skip)))
@@ -233,6 +236,8 @@ def warm_batches_in_background(sizes=("s", "m", "l"), frame_skip: int = 2) -> No
                         continue
                     stepper._compiling.add(bucket)
                 stepper._compile_batched(bucket)
+        if then is not None:
+            then()
 
     _start_compile(compile_all)
 

@@ -26,6 +26,7 @@ def stepper_and_levels():
     assert play.stepper_for(files[1]) is stepper
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(play, "BATCH_BUCKETS", (4,))
+        patch.setattr(play, "MIN_BATCH", 2)
         stepper._compile_batched(4)  # what the background compile does, here in the foreground
         assert 4 in stepper._batched
         yield stepper, files
@@ -55,18 +56,21 @@ def test_a_batched_step_matches_single_steps_for_different_levels(stepper_and_le
     assert positions[0].shape == positions[1].shape and not np.allclose(positions[0], positions[1])
 
 
-def test_odd_and_oversized_batches_are_padded_and_split(stepper_and_levels):
+def test_odd_and_oversized_batches_are_padded_and_split(stepper_and_levels, monkeypatch):
     stepper, files = stepper_and_levels
     state, params = stepper.start(files[0])
     action = play.action_from_keys(set())
     one = stepper.step(state, action, params)
     # 3 plays: one padded call; 9 plays: calls of 4, 4 and a single step. Same results for every play.
+    calls = []
+    monkeypatch.setattr(stepper, "step", lambda *a: calls.append(1) or play.Stepper.step(stepper, *a))
     for n in (3, 9):
         results = stepper.step_many([state] * n, [action] * n, [params] * n)
         assert len(results) == n
         for s, r in results:
             assert r == one[1]
             _assert_close(s, one[0])
+    assert len(calls) == 1  # only the 9th play stepped on its own
 
 
 class _FakeSession:

@@ -180,6 +180,10 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dense-reward", type=float, default=None,
                         help="shaping scale (default: the level's; 0.1 on random levels)")
     parser.add_argument("--no-shard", action="store_true", help="do not split the env batch over local devices")
+    parser.add_argument("--minutes", type=float, default=None,
+                        help="stop after this much wall-clock time, compiling included (default: no limit)")
+    parser.add_argument("--target-solve-rate", type=float, default=None, metavar="RATE",
+                        help="stop once the training solve rate averages RATE over the last 8 updates")
     parser.add_argument("--record-command", action="store_true", default=True, help=argparse.SUPPRESS)
 
 

@@ -166,6 +166,37 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     return summary
 
 
+class StopRule:
+    """When `kinetix train` ends early: a wall-clock budget, or a training solve rate held over recent updates.
+
+    Polled between jitted chunks, so a run overshoots by at most one chunk. The solve rate is that of the
+    episodes that finished in each update, averaged over the last `window` updates (one lucky update is not
+    enough); updates where no episode finished do not count.
+    """
+
+    def __init__(self, minutes: float | None = None, target_solve_rate: float | None = None, window: int = 8):
+        if minutes is not None and not minutes > 0:
+            raise ValueError(f"--minutes must be positive, got {minutes}")
+        if target_solve_rate is not None and not 0 < target_solve_rate <= 1:
+            raise ValueError(f"--target-solve-rate must be in (0, 1], got {target_solve_rate}")
+        self.minutes, self.target, self.window = minutes, target_solve_rate, window
+        self.start = time.perf_counter()
+        self.rates: list[float] = []
+        self.reason: str | None = None
+
+    def observe(self, metrics: dict) -> None:
+        if metrics.get("episodes", 1) > 0 and metrics["solve_rate"] == metrics["solve_rate"]:  # not NaN
+            self.rates.append(float(metrics["solve_rate"]))
+
+    def __call__(self) -> bool:
+        if self.minutes is not None and time.perf_counter() - self.start >= 60 * self.minutes:
+            self.reason = f"time budget of {self.minutes:g} min used"
+        recent = self.rates[-self.window:]
+        if self.target is not None and len(recent) == self.window and sum(recent) / self.window >= self.target:
+            self.reason = f"solve rate {sum(recent) / self.window:.2f} over the last {self.window} updates"
+        return self.reason is not None
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -177,7 +208,15 @@ def run(args: argparse.Namespace) -> int:
     total = dataclasses.replace(config, total_timesteps=args.steps).planned_steps
     bar = tqdm(total=total, unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0, file=sys.stderr)
 
+    try:
+        rule = StopRule(args.minutes, args.target_solve_rate)
+    except ValueError as error:
+        bar.close()
+        print(f"kinetix train: {error}", file=sys.stderr)
+        return 2
+
     def progress(m: dict) -> None:
+        rule.observe(m)
         bar.update(int(m["env_steps"]) - bar.n)
         bar.set_postfix(ret=f"{m['mean_return']:.2f}", solve=f"{m['solve_rate']:.2f}",
                         sps=f"{m['steps_per_second']:.0f}")
@@ -197,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
         summary = train_agent(args.level, out, steps=args.steps, curriculum=args.curriculum, init=args.init,
                               seed=args.seed, config=config, observation=observation,
                               dense_reward=args.dense_reward, shard=not args.no_shard, progress=progress,
-                              should_stop=lambda: bool(interrupted), command=command)
+                              should_stop=lambda: bool(interrupted) or rule(), command=command)
     except (LevelError, CheckpointError, ValueError) as error:
         bar.close()
         print(f"kinetix train: {error}", file=sys.stderr)
@@ -210,6 +249,8 @@ def run(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     bar.close()
+    if rule.reason and not interrupted:
+        print(f"kinetix train: stopped early: {rule.reason}", file=sys.stderr)
     last = summary["metrics"][-1] if summary["metrics"] else {}
     print(f"wrote {out}/checkpoint, metrics.json and curve.png: {summary['steps']:.0f} steps in "
           f"{summary['elapsed_seconds']:.0f} s ({last.get('steps_per_second', 0):.0f} steps/s), last return "

@@ -1,5 +1,7 @@
 """Shared test setup: the persistent JAX compilation cache and the path to ../shared."""
 
+import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -12,6 +14,10 @@ SHARED_DIR = Path(__file__).resolve().parents[1].parent / "shared"
 def pytest_configure(config: pytest.Config) -> None:
     # Before any test compiles: a second run on the same machine then mostly loads compiled steps from disk.
     enable_compilation_cache()
+    # No test may read or change the user's own gallery (~/.local/share/kinetix): anything that falls back to
+    # the default data directory gets a throwaway one. Subprocesses inherit it.
+    if "KINETIX_DATA" not in os.environ:
+        os.environ["KINETIX_DATA"] = tempfile.mkdtemp(prefix="kinetix-test-data-")
 
 
 @pytest.fixture(scope="session")

@@ -12,10 +12,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_serve_prints_the_url_and_stops_on_ctrl_c():
+def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
+    # --data keeps the test away from the user's own gallery (~/.local/share/kinetix).
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--warm", "none"], cwd=ROOT,
-                               env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--warm", "none",
+                                "--data", str(tmp_path)],
+                               cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         lines = []
         for line in process.stdout:
@@ -35,14 +37,15 @@ def test_serve_prints_the_url_and_stops_on_ctrl_c():
             process.kill()
 
 
-def test_serve_refuses_a_busy_port():
+def test_serve_refuses_a_busy_port(tmp_path):
     import socket
 
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen(1)
         port = busy.getsockname()[1]
-        result = subprocess.run([sys.executable, "-m", "kinetix", "serve", "--port", str(port), "--warm", "none"],
+        result = subprocess.run([sys.executable, "-m", "kinetix", "serve", "--port", str(port), "--warm", "none",
+                                 "--data", str(tmp_path)],
                                 cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True,
                                 timeout=60)
     assert result.returncode == 2

@@ -1,0 +1,263 @@
+"""Every browser play, human or agent, recorded to an MCAP file (kinetix.recording.Recorder), without slowing play.
+
+`PlayRecorder` is a session.PlayListener (`manager.add_listener(PlayRecorder(directory))`):
+- play_started opens a Recorder under `<directory>/recent/` with who plays, the gallery level id (if any), the
+  seed (0: a level's start is fixed) and the env config and params the play steps with;
+- play_stepped hands the action, reward, flags and the bodies' state after the step to the Recorder's queue
+  (microseconds: the Recorder encodes and writes on its own thread) and keeps the state numbers in memory for
+  a download of a play still running;
+- frame_pushed passes every pushed JPEG on; the Recorder keeps at most one per 0.1 s of simulated time;
+- play_ended (also for a play cut short by Stop, a new play or the tab going away) finishes the file on the
+  finisher thread (close: drain, footer, fsync, rename), so the target is a complete recording or nothing.
+
+Times in the file are simulated seconds (steps x frame skip x dt), as for the gallery's best times, so a pause
+or a slow machine does not stretch a recording.
+
+Retention: `recent/` holds each tab's last play only (the previous one is deleted when the next one is
+finished); after a tab closes its last file is kept for RECENT_KEEP_S and then swept (at start-up and whenever a
+play finishes). The gallery keeps best runs elsewhere (server.gallery.runs).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import logging
+import os
+import secrets
+import tempfile
+import threading
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+
+from kinetix.recording import Recorder, RecordingError, remove_partial_files
+from server.session import PlayListener, Session
+
+log = logging.getLogger(__name__)
+
+RECENT_DIR = "recent"
+RECENT_KEEP_S = 3600.0  # how long the last play of a closed tab stays in recent/
+MAX_LOGGED_STEPS = 100_000  # the in-memory copy for downloads mid-play (episodes end at their time limit anyway)
+FINISH_TIMEOUT_S = 60.0
+
+
+@dataclasses.dataclass
+class Finished:
+    """A finished recording of one play."""
+
+    path: Path | None  # None when writing it failed (logged)
+    player: str
+    level_id: str | None
+    result: str  # solved | failed | truncated | nan | stopped
+    steps: int
+    seconds: float
+
+
+class _Bodies(types.SimpleNamespace):
+    """The bodies' dynamic state after a step as numpy arrays (what Recorder.add_step reads from a SimState)."""
+
+
+class LiveRecording:
+    """One play being recorded: the Recorder plus an in-memory copy of its steps for mid-play downloads."""
+
+    def __init__(self, path: Path, level_file, metadata: dict, env_config, env_params, tick: float):
+        self.level_file, self.metadata = level_file, metadata
+        self.env_config, self.env_params = env_config, env_params
+        self.tick = tick  # simulated seconds per agent step
+        self.recorder = Recorder(path, level_file, metadata=metadata, env_config=env_config, env_params=env_params)
+        self.lock = threading.Lock()
+        self.steps: list[tuple] = []  # (t, action, reward, terminated, truncated, _Bodies)
+        self.open = True
+        self.done: concurrent.futures.Future[Finished] = concurrent.futures.Future()
+
+    def add_step(self, action: np.ndarray, state, result) -> None:
+        bodies = state.level.sim.bodies
+        # The step's arrays are computed already (the StepResult was fetched), so these copies do not wait.
+        snapshot = _Bodies(bodies=_Bodies(position=np.asarray(bodies.position), angle=np.asarray(bodies.angle),
+                                          velocity=np.asarray(bodies.velocity),
+                                          angular_velocity=np.asarray(bodies.angular_velocity)))
+        with self.lock:
+            if not self.open:
+                return
+            t = len(self.steps) * self.tick + self.tick
+            item = (t, np.array(action), result.reward, result.terminated, result.truncated, snapshot)
+            if len(self.steps) < MAX_LOGGED_STEPS:
+                self.steps.append(item)
+            self.recorder.add_step(*item[1:], t=t)
+
+    def add_frame(self, jpeg: bytes) -> None:
+        with self.lock:
+            if not self.open or not self.steps:
+                return
+            t = self.steps[-1][0]
+            if self.recorder.wants_frame(t):
+                self.recorder.add_frame(jpeg, t)
+
+    def stop_adding(self) -> None:
+        with self.lock:
+            self.open = False
+
+    def snapshot(self) -> bytes:
+        """The steps so far as a complete recording of their own (without camera frames): written to a temporary
+        file with a fresh Recorder and read back. For a download while the play still runs."""
+        with self.lock:
+            steps = list(self.steps)
+        metadata = dict(self.metadata, partial=True)
+        with tempfile.TemporaryDirectory(prefix="kinetix-snapshot-") as folder:
+            path = Path(folder) / "snapshot.mcap"
+            with Recorder(path, self.level_file, metadata=metadata, env_config=self.env_config,
+                          env_params=self.env_params) as recorder:
+                for t, *item in steps:
+                    recorder.add_step(*item, t=t)
+            return path.read_bytes()
+
+
+class PlayRecorder(PlayListener):
+    """Records every play of every session; see the module docstring. `enabled=False` records nothing."""
+
+    def __init__(self, directory: str | os.PathLike, *, enabled: bool = True):
+        self.directory = Path(directory)
+        self.recent = self.directory / RECENT_DIR
+        self.enabled = enabled
+        self._lock = threading.Lock()
+        self._live: dict[int, LiveRecording] = {}  # id(session) -> the play being recorded
+        self._last: dict[int, LiveRecording] = {}  # id(session) -> the last ended play (its `done` future)
+        # Closing a recording waits for its writer (drain, fsync): never on the play thread.
+        self._finisher = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinetix-rec")
+        if enabled:
+            self.recent.mkdir(parents=True, exist_ok=True)
+
+    # ------------------------------------------------------------------ start-up and retention
+
+    def clean_up(self) -> list[Path]:
+        """Remove partial files of a killed server (older than an hour, so another live server's are kept) and
+        recent/ files older than RECENT_KEEP_S. Returns what was removed."""
+        removed = remove_partial_files(self.directory) + remove_partial_files(self.recent)
+        return removed + self._sweep_recent()
+
+    def _sweep_recent(self) -> list[Path]:
+        removed = []
+        with self._lock:
+            keep = {r.recorder.path for r in self._live.values()}
+            keep |= {r.done.result().path for r in self._last.values() if r.done.done()}
+        now = time.time()
+        for path in self.recent.glob("*.mcap"):
+            try:
+                if path not in keep and now - path.stat().st_mtime > RECENT_KEEP_S:
+                    path.unlink()
+                    removed.append(path)
+            except FileNotFoundError:
+                pass
+        return removed
+
+    # ------------------------------------------------------------------ PlayListener
+
+    def play_started(self, session: Session, level_file, params) -> None:
+        if not self.enabled:
+            return
+        stepper = session._play[0]
+        metadata = {"player": session.player, "name": getattr(session.editor.spec, "name", "") or "",
+                    "level_id": session.gallery_id or "", "seed": 0, "source": "browser"}
+        path = self.recent / f"play-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(4)}.mcap"
+        try:
+            live = LiveRecording(path, level_file, metadata, stepper.env.config, params,
+                                 float(params.sim.dt) * stepper.frame_skip)
+        except (RecordingError, OSError) as error:  # e.g. a full disk: the play goes on unrecorded
+            log.warning("play not recorded: %s", error)
+            return
+        with self._lock:
+            previous = self._live.pop(id(session), None)
+            self._live[id(session)] = live
+        if previous is not None:  # not ended (cannot happen through Session, which ends a play before the next)
+            self._finish(session, previous, "stopped", len(previous.steps))
+
+    def play_stepped(self, session: Session, action: np.ndarray, state, result) -> None:
+        live = self._live.get(id(session))
+        if live is not None:
+            live.add_step(action, state, result)
+
+    def frame_pushed(self, session: Session, jpeg: bytes, frame: np.ndarray) -> None:
+        live = self._live.get(id(session))
+        if live is not None:
+            live.add_frame(jpeg)
+
+    def play_ended(self, session: Session, result: str, steps: int, seconds: float) -> None:
+        with self._lock:
+            live = self._live.pop(id(session), None)
+        if live is not None:
+            self._finish(session, live, result, steps)
+
+    def session_closed(self, session: Session) -> None:
+        with self._lock:
+            live = self._live.pop(id(session), None)
+            self._last.pop(id(session), None)
+        if live is not None:  # Session.close ends a running play first; this is a safety net
+            self._finish(session, live, "stopped", len(live.steps))
+
+    # ------------------------------------------------------------------ finishing
+
+    def _finish(self, session: Session, live: LiveRecording, result: str, steps: int) -> None:
+        live.stop_adding()
+        with self._lock:
+            previous = self._last.get(id(session))
+            if not session.closed:
+                self._last[id(session)] = live
+        self._finisher.submit(self._close, live, previous, result, steps)
+
+    def _close(self, live: LiveRecording, previous: LiveRecording | None, result: str, steps: int) -> None:
+        path = None
+        try:
+            path = live.recorder.close()
+        except (RecordingError, OSError) as error:
+            log.warning("recording %s not finished: %s", live.recorder.path.name, error)
+        meta = live.metadata
+        live.done.set_result(Finished(path, meta["player"], meta["level_id"] or None, result, steps,
+                                      steps * live.tick))
+        if previous is not None and previous.done.done():
+            old = previous.done.result().path
+            if old is not None and old != path:
+                old.unlink(missing_ok=True)  # recent/ keeps each tab's last play only
+        try:
+            self._sweep_recent()
+        except OSError:
+            log.debug("sweeping recent recordings failed", exc_info=True)
+
+    def close(self) -> None:
+        """Finish every recording still open (server shutdown)."""
+        with self._lock:
+            live = list(self._live.values())
+            self._live.clear()
+        for recording in live:
+            recording.stop_adding()
+            self._finisher.submit(self._close, recording, None, "stopped", len(recording.steps))
+        self._finisher.shutdown(wait=True)
+
+    # ------------------------------------------------------------------ for the tab's panel and the gallery
+
+    def last_finished(self, session: Session, timeout: float = FINISH_TIMEOUT_S) -> Finished | None:
+        """The session's last ended play once its file is finished (waits for it), or None if it has none."""
+        with self._lock:
+            live = self._last.get(id(session))
+        if live is None:
+            return None
+        try:
+            return live.done.result(timeout=timeout)
+        except concurrent.futures.TimeoutError:
+            return None
+
+    def download(self, session: Session) -> tuple[str, bytes] | None:
+        """(file name, bytes) of the session's current play (the steps so far) or else its last play."""
+        with self._lock:
+            live = self._live.get(id(session))
+        if live is not None and live.steps:
+            return f"kinetix-play-{len(live.steps)}-steps-so-far.mcap", live.snapshot()
+        finished = self.last_finished(session)
+        if finished is None or finished.path is None:
+            return None
+        try:
+            return f"kinetix-play-{finished.result}-{finished.steps}-steps.mcap", finished.path.read_bytes()
+        except FileNotFoundError:  # swept meanwhile
+            return None

@@ -56,6 +56,7 @@ class StepResult:
     solved: bool
     failed: bool
     timestep: int
+    batch: int = 1  # stepped alone (1) or in a compiled batch of this many plays (bitwise different results)
 
 
 class Stepper:
@@ -130,7 +131,7 @@ class Stepper:
             next_states, numbers = outs
             reward, terminated, truncated, solved, failed, timestep = jax.device_get(numbers)
             results += [(next_states[i], StepResult(float(reward[i]), bool(terminated[i]), bool(truncated[i]),
-                                                    bool(solved[i]), bool(failed[i]), int(timestep[i])))
+                                                    bool(solved[i]), bool(failed[i]), int(timestep[i]), bucket))
                         for i in range(n)]
         return results
 

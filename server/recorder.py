@@ -69,7 +69,7 @@ class LiveRecording:
         self.tick = tick  # simulated seconds per agent step
         self.recorder = Recorder(path, level_file, metadata=metadata, env_config=env_config, env_params=env_params)
         self.lock = threading.Lock()
-        self.steps: list[tuple] = []  # (t, action, reward, terminated, truncated, _Bodies)
+        self.steps: list[tuple] = []  # (t, action, reward, terminated, truncated, _Bodies, batch)
         self.open = True
         self.done: concurrent.futures.Future[Finished] = concurrent.futures.Future()
 
@@ -83,10 +83,11 @@ class LiveRecording:
             if not self.open:
                 return
             t = len(self.steps) * self.tick + self.tick
-            item = (t, np.array(action), result.reward, result.terminated, result.truncated, snapshot)
+            batch = getattr(result, "batch", 1)
+            item = (t, np.array(action), result.reward, result.terminated, result.truncated, snapshot, batch)
             if len(self.steps) < MAX_LOGGED_STEPS:
                 self.steps.append(item)
-            self.recorder.add_step(*item[1:], t=t)
+            self.recorder.add_step(*item[1:6], t=t, batch=batch)
 
     def add_frame(self, jpeg: bytes) -> None:
         with self.lock:
@@ -110,8 +111,8 @@ class LiveRecording:
             path = Path(folder) / "snapshot.mcap"
             with Recorder(path, self.level_file, metadata=metadata, env_config=self.env_config,
                           env_params=self.env_params) as recorder:
-                for t, *item in steps:
-                    recorder.add_step(*item, t=t)
+                for t, *item, batch in steps:
+                    recorder.add_step(*item, t=t, batch=batch)
             return path.read_bytes()
 
 

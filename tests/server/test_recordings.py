@@ -154,6 +154,28 @@ def test_an_agent_play_is_recorded_with_the_agent_as_player(app, make_client):
     assert verify(recording).ok
 
 
+def test_plays_stepped_together_in_a_batch_replay_bitwise(app, make_client):
+    """With 3 tabs playing, the server steps them in one vmapped call (bitwise different from single steps):
+    the recordings say so per step and re-simulate bitwise."""
+    from server import play
+
+    play.warm_batches_in_background(("m",))
+    assert play.wait_for_compiles(timeout=300)
+    sessions = [_session(app, make_client(app))[0] for _ in range(3)]
+    for i, session in enumerate(sessions):
+        agent = _Agent()
+        agent.act = lambda state, params, i=i: np.array([1 + i % 2, 0, 0, 0, 0, 0], np.int32)
+        session.play(controller=agent)
+    _wait(lambda: all(s._steps >= 40 for s in sessions))
+    for session in sessions:
+        session.stop()
+    recordings = [read_recording(_recorder(app).last_finished(s).path) for s in sessions]
+    assert any((r.batches > 1).any() for r in recordings), "no step was batched"
+    for recording in recordings:
+        check = verify(recording)
+        assert check.ok, check.detail
+
+
 def test_download_sends_the_last_play_and_mid_play_the_steps_so_far(app, make_client):
     client = make_client(app)
     session, nonce = _session(app, client)

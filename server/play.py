@@ -56,7 +56,9 @@ class StepResult:
     solved: bool
     failed: bool
     timestep: int
-    batch: int = 1  # stepped alone (1) or in a compiled batch of this many plays (bitwise different results)
+    # Stepped alone (1) or in a compiled batch of this many plays, whose numbers can differ in the last bits:
+    # recordings note it so replay steps the same way. Not part of equality (the same step outcome).
+    batch: int = dataclasses.field(default=1, compare=False)
 
 
 class Stepper:

@@ -1,22 +1,23 @@
 """Recordings in the tab: download the current or last play, and replay any recording with a timeline.
 
-`RecordingPanel(recorder, best_run=None)` is a session.PlayListener; on every new session it adds a
-"Recordings" folder:
+`RecordingPanel(recorder)` is a session.PlayListener; on every new session it adds a "Recordings" folder:
 - **Download recording**: the play running now (its steps so far, as a complete file without camera frames;
   see PlayRecorder.download) or else the tab's last play, as an .mcap file;
 - **Replay last play** and **Replay a file (.mcap)** (an upload): open a `Replay`;
 - a status line for what went wrong (a bad upload: not MCAP, not ours, truncated, too large).
 
 A `Replay` puts the session in mode "replay" (no editing, no play) and draws, with server.draw, the scene of
-kinetix.recording.recorded_level(recording, step): the recorded states, no re-simulation, so scrubbing to any
-step is immediate. Its timeline ("Replay" folder): Play/Pause, a Replay step slider (scrub), Speed, Close replay. Space,
-Esc, Play or Close replay leave it. A thread per replay advances the step at the recorded pace times the speed.
+kinetix.recording.recorded_level(recording, step): the recorded states, no re-simulation (and no JAX call per
+frame: Replay.scene_at sets the recorded positions and angles in numpy), so scrubbing to any step is immediate.
+Its timeline ("Replay" folder): Play/Pause, a "Replay step" slider (scrub), Speed, Close replay. Space, Esc,
+Play or Close replay leave it. A thread per replay advances the step at the recorded pace times the speed.
 
-`open_best_run(session, path)` is what `/?level=<id>&mode=replay` calls (server.gallery.tab) for a level's best run.
+`open_best_run(session, path, title)` is what `/?level=<id>&mode=replay` calls (server.gallery.tab).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import html
 import logging
 import threading
@@ -66,7 +67,8 @@ class Replay:
         self._wake = threading.Event()
         self._dirty = True
         self._stopping = False
-        self._scene: draw.Scene | None = None
+        self._scene: draw.Scene | None = None  # the last scene drawn
+        self._base: draw.Scene | None = None  # the recording's starting scene (static parts shared by every step)
         self._result = outcome(recording)
         self._thread = threading.Thread(target=self._run, name="kinetix-replay", daemon=True)
 
@@ -141,12 +143,24 @@ class Replay:
             self._wake.wait(FRAME_S if playing else 1.0)
             self._wake.clear()
 
+    def scene_at(self, step: int) -> draw.Scene:
+        """The drawn scene after `step`: kinetix.recording.recorded_level's state, built in numpy. Only positions
+        and angles differ between steps (draw.scene_of(static_from=...) relies on the same), and no JAX call per
+        frame means no compile on the first frame and no dispatch cost while scrubbing."""
+        if self._base is None:
+            self._base = draw.scene_of(recorded_level(self.recording, -1))
+        if step < 0:
+            return self._base
+        position, angle = self._base.position.copy(), self._base.angle.copy()
+        position[self.recording.bodies] = self.recording.position[step]
+        angle[self.recording.bodies] = self.recording.rotation[step]
+        return dataclasses.replace(self._base, position=position, angle=angle)
+
     def _push(self, step: int) -> None:
         session = self.session
         if session.closed or session.client is None:
             return
-        level = recorded_level(self.recording, step)
-        self._scene = draw.scene_of(level, static_from=self._scene)
+        self._scene = self.scene_at(step)
         meta = self.recording.metadata
         hud = (f"REPLAY  {meta.get('player', '?')}  step {step + 1}/{self.last + 1}  "
                f"{(step + 1) * self.tick:.2f} s  {self.speed:g}x  Space: back to editing")

@@ -238,6 +238,7 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
         # What is drawn is the recorded state of that step (no re-simulation).
         level = recorded_level(recording, step)
         assert np.array_equal(replay._scene.position, np.asarray(level.sim.bodies.position))
+        assert np.array_equal(replay._scene.angle, np.asarray(level.sim.bodies.angle))
         assert np.array_equal(replay._scene.position[recording.bodies], recording.position[step])
     first = _frame(client.frames()[-1])
     before = client.count()

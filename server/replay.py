@@ -190,7 +190,7 @@ class SessionPanel:
             self.status = gui.add_markdown("")
         with gui.add_folder("Replay", visible=False) as self.timeline:
             self.title = gui.add_markdown("")
-            self.play_button = gui.add_button("Play")
+            self.play_button = gui.add_button("Play replay")
             self.slider = gui.add_slider("Replay step", min=-1, max=1, step=1, initial_value=-1)
             self.speed = gui.add_dropdown("Speed", options=list(SPEEDS), initial_value="1x")
             self.close_button = gui.add_button("Close replay")
@@ -260,7 +260,7 @@ class SessionPanel:
                               f"{recording.num_steps} steps")
         self._set_slider(-1, max_value=max(recording.num_steps - 1, 0))
         self.speed.value = "1x"
-        self.play_button.label = "Pause"
+        self.play_button.label = "Pause replay"
         self.timeline.visible = True
         self.say(f"Replaying {html.escape(title)}.")
         replay.start()
@@ -273,7 +273,7 @@ class SessionPanel:
         replay = self.replay
         if replay is not None:
             replay.set_playing(not replay.playing)
-            self.play_button.label = "Pause" if replay.playing else "Play"
+            self.play_button.label = "Pause replay" if replay.playing else "Play replay"
 
     def _scrub(self) -> None:
         if self._setting or self.replay is None:
@@ -295,7 +295,7 @@ class SessionPanel:
             return
         try:
             self._set_slider(step)
-            self.play_button.label = "Pause" if playing else "Play"
+            self.play_button.label = "Pause replay" if playing else "Play replay"
         except Exception:  # the tab went away meanwhile
             log.debug("timeline not updated", exc_info=True)
 

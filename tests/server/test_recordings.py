@@ -216,7 +216,7 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce)
     try:
-        _play_keys(app, session, keys, "ArrowRight", 30)
+        _play_keys(app, session, keys, "ArrowRight", 60)
     finally:
         keys.close()
     recording = read_recording(_recorder(app).last_finished(session).path)
@@ -226,8 +226,10 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
     replay = session.replay
     _wait(lambda: replay.frames_pushed >= 10)
     assert len(client.frames(start)) >= 5
-    _click(client, "Pause")
+    _click(client, "Pause replay")
     _wait(lambda: not replay.playing)
+    assert replay.step < recording.num_steps - 1, "paused before the end (the run lasts 2 s at 1x)"
+    _wait(lambda: any(e.get("label") == "Play replay" for e in client.gui().values()))
     slider = client.find_gui("Replay step")
     assert slider["max"] == recording.num_steps - 1
     for step in (3, recording.num_steps - 1, 0):

@@ -70,6 +70,7 @@ class LiveRecording:
         self.recorder = Recorder(path, level_file, metadata=metadata, env_config=env_config, env_params=env_params)
         self.lock = threading.Lock()
         self.steps: list[tuple] = []  # (t, action, reward, terminated, truncated, _Bodies, batch)
+        self.count = 0  # steps recorded (the in-memory copy stops at MAX_LOGGED_STEPS, the file does not)
         self.open = True
         self.done: concurrent.futures.Future[Finished] = concurrent.futures.Future()
 
@@ -82,7 +83,8 @@ class LiveRecording:
         with self.lock:
             if not self.open:
                 return
-            t = len(self.steps) * self.tick + self.tick
+            self.count += 1
+            t = self.count * self.tick
             batch = getattr(result, "batch", 1)
             item = (t, np.array(action), result.reward, result.terminated, result.truncated, snapshot, batch)
             if len(self.steps) < MAX_LOGGED_STEPS:
@@ -91,9 +93,9 @@ class LiveRecording:
 
     def add_frame(self, jpeg: bytes) -> None:
         with self.lock:
-            if not self.open or not self.steps:
+            if not self.open or not self.count:
                 return
-            t = self.steps[-1][0]
+            t = self.count * self.tick  # the frame shows the latest step
             if self.recorder.wants_frame(t):
                 self.recorder.add_frame(jpeg, t)
 
@@ -173,7 +175,7 @@ class PlayRecorder(PlayListener):
             previous = self._live.pop(id(session), None)
             self._live[id(session)] = live
         if previous is not None:  # not ended (cannot happen through Session, which ends a play before the next)
-            self._finish(session, previous, "stopped", len(previous.steps))
+            self._finish(session, previous, "stopped", previous.count)
 
     def play_stepped(self, session: Session, action: np.ndarray, state, result) -> None:
         live = self._live.get(id(session))
@@ -196,7 +198,7 @@ class PlayRecorder(PlayListener):
             live = self._live.pop(id(session), None)
             self._last.pop(id(session), None)
         if live is not None:  # Session.close ends a running play first; this is a safety net
-            self._finish(session, live, "stopped", len(live.steps))
+            self._finish(session, live, "stopped", live.count)
 
     # ------------------------------------------------------------------ finishing
 
@@ -210,6 +212,7 @@ class PlayRecorder(PlayListener):
 
     def _close(self, live: LiveRecording, previous: LiveRecording | None, result: str, steps: int) -> None:
         path = None
+        live.steps = []  # only a running play's download needs them; _last keeps this object until the next play
         try:
             path = live.recorder.close()
         except (RecordingError, OSError) as error:
@@ -233,7 +236,7 @@ class PlayRecorder(PlayListener):
             self._live.clear()
         for recording in live:
             recording.stop_adding()
-            self._finisher.submit(self._close, recording, None, "stopped", len(recording.steps))
+            self._finisher.submit(self._close, recording, None, "stopped", recording.count)
         self._finisher.shutdown(wait=True)
 
     # ------------------------------------------------------------------ for the tab's panel and the gallery
@@ -253,8 +256,8 @@ class PlayRecorder(PlayListener):
         """(file name, bytes) of the session's current play (the steps so far) or else its last play."""
         with self._lock:
             live = self._live.get(id(session))
-        if live is not None and live.steps:
-            return f"kinetix-play-{len(live.steps)}-steps-so-far.mcap", live.snapshot()
+        if live is not None and live.count:
+            return f"kinetix-play-{live.count}-steps-so-far.mcap", live.snapshot()
         finished = self.last_finished(session)
         if finished is None or finished.path is None:
             return None

@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 MAX_UPLOAD = 200 * 1024 * 1024  # bytes; a 10-minute play with frames is a few MB
 SPEEDS = {"0.25x": 0.25, "0.5x": 0.5, "1x": 1.0, "2x": 2.0, "4x": 4.0}
 FRAME_S = 1.0 / 30  # the replay pushes at most 30 frames a second
+PAUSED_LOOK_S = 0.25  # while paused, how often the thread looks for a resized canvas
 SLIDER_EVERY_S = 0.1  # while playing, the slider follows at this pace (each move is a message to the tab)
 RESULT_TEXT = {"solved": "Solved", "failed": "Failed", "truncated": "Time is up", "nan": "The simulation broke"}
 
@@ -69,6 +70,7 @@ class Replay:
         self._stopping = False
         self._scene: draw.Scene | None = None  # the last scene drawn
         self._base: draw.Scene | None = None  # the recording's starting scene (static parts shared by every step)
+        self._canvas: draw.View | None = None
         self._result = outcome(recording)
         self._thread = threading.Thread(target=self._run, name="kinetix-replay", daemon=True)
 
@@ -132,6 +134,9 @@ class Replay:
                 step, dirty, playing = int(self.position), self._dirty, self.playing
                 self._dirty = False
             before = now
+            canvas = self.session._canvas() if self.session.client is not None else None
+            if canvas != self._canvas:  # the tab was resized: redraw even while paused
+                self._canvas, dirty = canvas, True
             if dirty:
                 try:
                     self._push(step)
@@ -140,7 +145,7 @@ class Replay:
                 if not playing or now - last_slider >= SLIDER_EVERY_S:
                     last_slider = now
                     self.panel.show_step(self, step, playing)
-            self._wake.wait(FRAME_S if playing else 1.0)
+            self._wake.wait(FRAME_S if playing else PAUSED_LOOK_S)
             self._wake.clear()
 
     def scene_at(self, step: int) -> draw.Scene:

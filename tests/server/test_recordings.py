@@ -248,6 +248,9 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
     _wait(lambda: replay.shown_step == recording.num_steps - 1)
     last = _frame(client.wait_frame(before))
     assert np.abs(first - last).mean() > 0.5, "the car moved between the first and the last step"
+    before = client.count()
+    client.send_camera(300, 500)  # a resized tab gets a frame of its new size, also while paused
+    assert _frame(client.wait_frame(before)).shape == (500, 300, 3)
     client.send("GuiUpdateMessage", uuid=client.find_gui("Speed")["uuid"], updates={"value": "4x"})
     _wait(lambda: replay.speed == 4.0)
     _click(client, "Close replay")

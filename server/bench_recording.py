@@ -70,7 +70,7 @@ def _run(record: bool, seconds: float) -> dict:
             frames = len(client.frames(first))
             keys.close()
             finished = app.recorder.last_finished(session) if record else None
-            writer_cpu = app.recorder._last[id(session)].recorder.writer_cpu_seconds if record else 0.0
+            writer_cpu = app.recorder._last[session].recorder.writer_cpu_seconds if record else 0.0
         finally:
             client.close()
             app.stop()

@@ -29,6 +29,7 @@ import tempfile
 import threading
 import time
 import types
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -126,8 +127,10 @@ class PlayRecorder(PlayListener):
         self.recent = self.directory / RECENT_DIR
         self.enabled = enabled
         self._lock = threading.Lock()
-        self._live: dict[int, LiveRecording] = {}  # id(session) -> the play being recorded
-        self._last: dict[int, LiveRecording] = {}  # id(session) -> the last ended play (its `done` future)
+        # Keyed by the session itself, weakly: an entry goes with its session, and a closed tab's last play stays
+        # reachable for as long as someone holds the session (e.g. the gallery's record_play thread after a solve).
+        self._live: weakref.WeakKeyDictionary[Session, LiveRecording] = weakref.WeakKeyDictionary()
+        self._last: weakref.WeakKeyDictionary[Session, LiveRecording] = weakref.WeakKeyDictionary()
         # Closing a recording waits for its writer (drain, fsync): never on the play thread.
         self._finisher = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinetix-rec")
         if enabled:
@@ -172,31 +175,32 @@ class PlayRecorder(PlayListener):
             log.warning("play not recorded: %s", error)
             return
         with self._lock:
-            previous = self._live.pop(id(session), None)
-            self._live[id(session)] = live
+            previous = self._live.pop(session, None)
+            self._live[session] = live
         if previous is not None:  # not ended (cannot happen through Session, which ends a play before the next)
             self._finish(session, previous, "stopped", previous.count)
 
     def play_stepped(self, session: Session, action: np.ndarray, state, result) -> None:
-        live = self._live.get(id(session))
+        with self._lock:
+            live = self._live.get(session)
         if live is not None:
             live.add_step(action, state, result)
 
     def frame_pushed(self, session: Session, jpeg: bytes, frame: np.ndarray) -> None:
-        live = self._live.get(id(session))
+        with self._lock:
+            live = self._live.get(session)
         if live is not None:
             live.add_frame(jpeg)
 
     def play_ended(self, session: Session, result: str, steps: int, seconds: float) -> None:
         with self._lock:
-            live = self._live.pop(id(session), None)
+            live = self._live.pop(session, None)
         if live is not None:
             self._finish(session, live, result, steps)
 
     def session_closed(self, session: Session) -> None:
         with self._lock:
-            live = self._live.pop(id(session), None)
-            self._last.pop(id(session), None)
+            live = self._live.pop(session, None)
         if live is not None:  # Session.close ends a running play first; this is a safety net
             self._finish(session, live, "stopped", live.count)
 
@@ -205,10 +209,12 @@ class PlayRecorder(PlayListener):
     def _finish(self, session: Session, live: LiveRecording, result: str, steps: int) -> None:
         live.stop_adding()
         with self._lock:
-            previous = self._last.get(id(session))
-            if not session.closed:
-                self._last[id(session)] = live
-        self._finisher.submit(self._close, live, previous, result, steps)
+            previous = self._last.get(session)
+            self._last[session] = live
+        try:
+            self._finisher.submit(self._close, live, previous, result, steps)
+        except RuntimeError:  # the server is shutting down (the finisher is closed): finish here
+            self._close(live, previous, result, steps)
 
     def _close(self, live: LiveRecording, previous: LiveRecording | None, result: str, steps: int) -> None:
         path = None
@@ -244,7 +250,7 @@ class PlayRecorder(PlayListener):
     def last_finished(self, session: Session, timeout: float = FINISH_TIMEOUT_S) -> Finished | None:
         """The session's last ended play once its file is finished (waits for it), or None if it has none."""
         with self._lock:
-            live = self._last.get(id(session))
+            live = self._last.get(session)
         if live is None:
             return None
         try:
@@ -255,7 +261,7 @@ class PlayRecorder(PlayListener):
     def download(self, session: Session) -> tuple[str, bytes] | None:
         """(file name, bytes) of the session's current play (the steps so far) or else its last play."""
         with self._lock:
-            live = self._live.get(id(session))
+            live = self._live.get(session)
         if live is not None and live.count:
             return f"kinetix-play-{live.count}-steps-so-far.mcap", live.snapshot()
         finished = self.last_finished(session)

@@ -296,7 +296,7 @@ def test_a_disconnect_mid_play_leaves_a_finished_file(app, make_client):
     session.toggle_play()
     keys.down("ArrowRight")
     _wait(lambda: session._steps >= 15)
-    live = _recorder(app)._live[id(session)]
+    live = _recorder(app)._live[session]
     client.close()  # the tab goes away mid-play
     keys.close()
     finished = live.done.result(timeout=30)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import logging
+import math
 import os
 import secrets
 import tempfile
@@ -35,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from kinetix.recording import Recorder, RecordingError, remove_partial_files
+from kinetix.recording.schema import MAX_FRAME_HZ
 from server.session import PlayListener, Session
 
 log = logging.getLogger(__name__)
@@ -62,18 +64,46 @@ class _Bodies(types.SimpleNamespace):
 
 
 class LiveRecording:
-    """One play being recorded: the Recorder plus an in-memory copy of its steps for mid-play downloads."""
+    """One play being recorded: its Recorder (opened on the finisher thread: building the level's JSON and npz
+    takes milliseconds the thread starting the play should not spend) and an in-memory copy of its steps for
+    downloads mid-play. Steps and frames that come before the Recorder is open wait in a list."""
 
     def __init__(self, path: Path, level_file, metadata: dict, env_config, env_params, tick: float):
+        self.path = path
         self.level_file, self.metadata = level_file, metadata
         self.env_config, self.env_params = env_config, env_params
         self.tick = tick  # simulated seconds per agent step
-        self.recorder = Recorder(path, level_file, metadata=metadata, env_config=env_config, env_params=env_params)
+        self.recorder: Recorder | None = None
+        self.failed: BaseException | None = None  # the Recorder could not be opened (logged; nothing is written)
+        self._pending: list[tuple] = []  # (method name, args, kwargs) until the Recorder is open
         self.lock = threading.Lock()
         self.steps: list[tuple] = []  # (t, action, reward, terminated, truncated, _Bodies, batch)
         self.count = 0  # steps recorded (the in-memory copy stops at MAX_LOGGED_STEPS, the file does not)
+        self._last_frame_t = -math.inf
         self.open = True
         self.done: concurrent.futures.Future[Finished] = concurrent.futures.Future()
+
+    def open_file(self) -> None:
+        """Open the Recorder and hand it what arrived meanwhile (on the finisher thread, before any close)."""
+        try:
+            recorder = Recorder(self.path, self.level_file, metadata=self.metadata, env_config=self.env_config,
+                                env_params=self.env_params)
+        except (RecordingError, OSError) as error:  # e.g. a full disk: the play goes on unrecorded
+            log.warning("play not recorded: %s", error)
+            with self.lock:
+                self.failed, self._pending = error, []
+            return
+        with self.lock:
+            for name, args, kwargs in self._pending:
+                getattr(recorder, name)(*args, **kwargs)
+            self._pending = []
+            self.recorder = recorder
+
+    def _put(self, name: str, *args, **kwargs) -> None:  # with self.lock held
+        if self.recorder is not None:
+            getattr(self.recorder, name)(*args, **kwargs)
+        elif self.failed is None:
+            self._pending.append((name, args, kwargs))
 
     def add_step(self, action: np.ndarray, state, result) -> None:
         bodies = state.level.sim.bodies
@@ -90,15 +120,16 @@ class LiveRecording:
             item = (t, np.array(action), result.reward, result.terminated, result.truncated, snapshot, batch)
             if len(self.steps) < MAX_LOGGED_STEPS:
                 self.steps.append(item)
-            self.recorder.add_step(*item[1:6], t=t, batch=batch)
+            self._put("add_step", *item[1:6], t=t, batch=batch)
 
     def add_frame(self, jpeg: bytes) -> None:
         with self.lock:
             if not self.open or not self.count:
                 return
             t = self.count * self.tick  # the frame shows the latest step
-            if self.recorder.wants_frame(t):
-                self.recorder.add_frame(jpeg, t)
+            if t >= self._last_frame_t + 1.0 / MAX_FRAME_HZ - 1e-6:  # the Recorder's own rule, checked before queueing
+                self._last_frame_t = t
+                self._put("add_frame", jpeg, t)
 
     def stop_adding(self) -> None:
         with self.lock:
@@ -147,7 +178,7 @@ class PlayRecorder(PlayListener):
     def _sweep_recent(self) -> list[Path]:
         removed = []
         with self._lock:
-            keep = {r.recorder.path for r in self._live.values()}
+            keep = {r.path for r in self._live.values()}
             keep |= {r.done.result().path for r in self._last.values() if r.done.done()}
         now = time.time()
         for path in self.recent.glob("*.mcap"):
@@ -168,11 +199,11 @@ class PlayRecorder(PlayListener):
         metadata = {"player": session.player, "name": getattr(session.editor.spec, "name", "") or "",
                     "level_id": session.gallery_id or "", "seed": 0, "source": "browser"}
         path = self.recent / f"play-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(4)}.mcap"
+        live = LiveRecording(path, level_file, metadata, stepper.env.config, params,
+                             float(params.sim.dt) * stepper.frame_skip)
         try:
-            live = LiveRecording(path, level_file, metadata, stepper.env.config, params,
-                                 float(params.sim.dt) * stepper.frame_skip)
-        except (RecordingError, OSError) as error:  # e.g. a full disk: the play goes on unrecorded
-            log.warning("play not recorded: %s", error)
+            self._finisher.submit(live.open_file)  # the same one thread closes it later, so always after this
+        except RuntimeError:  # shutting down
             return
         with self._lock:
             previous = self._live.pop(session, None)
@@ -220,9 +251,10 @@ class PlayRecorder(PlayListener):
         path = None
         live.steps = []  # only a running play's download needs them; _last keeps this object until the next play
         try:
-            path = live.recorder.close()
+            if live.recorder is not None:  # None: it could not be opened (logged)
+                path = live.recorder.close()
         except (RecordingError, OSError) as error:
-            log.warning("recording %s not finished: %s", live.recorder.path.name, error)
+            log.warning("recording %s not finished: %s", live.path.name, error)
         meta = live.metadata
         live.done.set_result(Finished(path, meta["player"], meta["level_id"] or None, result, steps,
                                       steps * live.tick))

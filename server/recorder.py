@@ -297,8 +297,10 @@ class PlayRecorder(PlayListener):
         if live is not None and live.count:
             return f"kinetix-play-{live.count}-steps-so-far.mcap", live.snapshot()
         finished = self.last_finished(session)
-        if finished is None or finished.path is None:
+        if finished is None:
             return None
+        if finished.path is None:
+            raise RecordingError("the last play could not be recorded (see the server log)")
         try:
             return f"kinetix-play-{finished.result}-{finished.steps}-steps.mcap", finished.path.read_bytes()
         except FileNotFoundError:  # swept meanwhile

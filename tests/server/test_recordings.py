@@ -416,3 +416,17 @@ def test_start_up_removes_partial_leftovers(tmp_path):
     assert set(removed) == {old, stale}
     assert fresh.exists(), "a live recorder's partial file (recent) is kept"
     recorder.close()
+
+
+def test_a_recording_that_cannot_be_written_does_not_stop_the_play(app, make_client, tmp_path, monkeypatch):
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    monkeypatch.setattr(_recorder(app), "recent", tmp_path / "gone")  # e.g. the folder was deleted under us
+    session.toggle_play()
+    _wait(lambda: session._steps >= 10)
+    session.stop()
+    finished = _recorder(app).last_finished(session)
+    assert finished is not None and finished.path is None and finished.steps >= 10
+    assert not (tmp_path / "gone").exists()
+    _click(client, "Download recording")
+    _wait(lambda: "No download:" in _status(client) and "could not be recorded" in _status(client))

@@ -430,3 +430,20 @@ def test_a_recording_that_cannot_be_written_does_not_stop_the_play(app, make_cli
     assert not (tmp_path / "gone").exists()
     _click(client, "Download recording")
     _wait(lambda: "No download:" in _status(client) and "could not be recorded" in _status(client))
+
+
+def test_server_start_removes_partial_recordings_and_orphaned_best_runs(tmp_path):
+    import os
+
+    recordings = tmp_path / "recordings"
+    (recordings / "recent").mkdir(parents=True)
+    old = time.time() - 7200
+    partials = [recordings / "recent" / ".play-a.mcap.x1.part", recordings / ".best-lvl-1.mcap.copy.part"]
+    orphan = recordings / "best-nosuchlevel-abc.mcap"
+    for path in [*partials, orphan]:
+        path.write_bytes(b"left over by a killed server")
+        os.utime(path, (old, old))
+    with running_app(gallery=True, data=tmp_path, warm_sizes=()) as app:
+        assert app.store.recordings_dir == recordings
+        assert not any(p.exists() for p in partials)
+        assert not orphan.exists()

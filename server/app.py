@@ -144,7 +144,7 @@ class App:
 
         self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir())
         self._start_recordings()
-        link = GalleryLink(self.store, self.recorder if self.config.record else None)
+        link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
         link.attach(self.manager)
         if link.runs is not None:
             link.runs.remove_orphans()

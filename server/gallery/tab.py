@@ -33,9 +33,10 @@ OPEN_LIST_SIZE = 50  # levels offered by "Open from gallery" (newest first); the
 class GalleryLink:
     def __init__(self, store: Store, recorder=None):
         self.store = store
-        # With the server's PlayRecorder, the best human solve of each level keeps its recording (runs.BestRuns).
+        # With the server's PlayRecorder, the best human solve of each level keeps its recording (runs.BestRuns);
+        # without it (kinetix serve --no-record) the kept best runs can still be replayed.
         self.recorder = recorder
-        self.runs = BestRuns(store) if recorder is not None and store.recordings_dir is not None else None
+        self.runs = BestRuns(store) if store.recordings_dir is not None else None
 
     def attach(self, manager) -> None:
         manager.on_session_gui = self.build_gui

@@ -65,6 +65,7 @@ class Replay:
         self.shown_step: int | None = None  # the step of the last frame pushed (tests and the HUD)
         self.frames_pushed = 0
         self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
         self._wake = threading.Event()
         self._dirty = True
         self._stopping = False
@@ -93,9 +94,12 @@ class Replay:
         self._thread.start()
 
     def stop(self) -> None:
-        """The session left the replay (or closed); the thread ends at its next look. Never blocks."""
+        """The session left the replay (or closed); the thread ends at its next look. Waits at most for one frame
+        being sent (the sender never takes the session's lock, which the caller may hold)."""
         self._stopping = True
         self._wake.set()
+        with self._send_lock:
+            pass
         self.panel.replay_ended(self)
 
     def set_playing(self, playing: bool) -> None:
@@ -173,11 +177,12 @@ class Replay:
         if step == self.last and self._result:
             banner = f"{RESULT_TEXT[self._result]}\n{(step + 1) * self.tick:.2f} s, {step + 1} steps"
         frame = draw.draw_frame(self._scene, session._canvas(), hud=hud, banner=banner)
-        if self._stopping:
-            return
-        session._send_frame(frame, None, False)  # not a play frame: no listener records it
-        self.shown_step = step
-        self.frames_pushed += 1
+        with self._send_lock:  # stop() waits for a send in progress, so no replay frame lands after the edit frame
+            if self._stopping:
+                return
+            session._send_frame(frame, None, False)  # not a play frame: no listener records it
+            self.shown_step = step
+            self.frames_pushed += 1
 
 
 class SessionPanel:

@@ -447,3 +447,34 @@ def test_server_start_removes_partial_recordings_and_orphaned_best_runs(tmp_path
         assert app.store.recordings_dir == recordings
         assert not any(p.exists() for p in partials)
         assert not orphan.exists()
+
+
+def test_a_stuck_writer_does_not_hold_up_the_play(app, make_client, monkeypatch):
+    """The play loop only queues: with the recording's writer thread blocked (a stalled disk), the play still
+    steps and stops; once the writer goes on, the file is finished with every step."""
+    import threading
+
+    from kinetix.recording.writer import Recorder
+
+    gate = threading.Event()
+    original = Recorder._write_step
+
+    def stuck_write_step(self, *args):
+        gate.wait(timeout=120)
+        return original(self, *args)
+
+    monkeypatch.setattr(Recorder, "_write_step", stuck_write_step)
+    client = make_client(app)
+    session, _ = _session(app, client)
+    session.toggle_play()
+    try:
+        _wait(lambda: session._steps >= 40)
+        session.stop()  # returns although the file cannot be finished yet
+        assert session.mode == "edit"
+        live = _recorder(app)._last[session]
+        assert not live.done.done(), "the recording is still being written"
+    finally:
+        gate.set()
+    finished = live.done.result(timeout=60)
+    recording = read_recording(finished.path)
+    assert recording.num_steps == finished.steps >= 40

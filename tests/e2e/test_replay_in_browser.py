@@ -78,3 +78,29 @@ def test_watch_best_run_opens_the_replay_and_its_frames_change(browser, app):
         tab.assert_local_only()
     finally:
         tab.close()
+
+
+def test_keyboard_play_then_download_recording_gives_the_browser_a_valid_file(browser, app):
+    from kinetix.recording import read_recording, verify
+
+    level_id, _ = app.store.create_level("E2E download", to_document(build(falling_win_spec())))
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        page = tab.page
+        page.goto(app.url + f"?level={level_id}")
+        page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        session = app.manager.session_by_nonce(page.get_attribute("#kinetix-session", "data-nonce"))
+        _wait(lambda: session.gallery_id == level_id)
+        page.mouse.click(900, 400)  # focus the page
+        page.keyboard.press("Space")
+        _wait(lambda: session.mode == "ended")  # the ball falls onto the goal
+        with page.expect_download(timeout=60_000) as download:
+            page.get_by_role("button", name="Download recording", exact=True).click()
+        path = download.value.path()
+        assert download.value.suggested_filename.endswith(".mcap")
+        recording = read_recording(path)
+        assert recording.solved and recording.metadata["level_id"] == level_id
+        assert verify(recording).ok
+        tab.assert_local_only()
+    finally:
+        tab.close()

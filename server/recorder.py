@@ -4,8 +4,8 @@
 - play_started opens a Recorder under `<directory>/recent/` with who plays, the gallery level id (if any), the
   seed (0: a level's start is fixed) and the env config and params the play steps with;
 - play_stepped hands the action, reward, flags and the bodies' state after the step to the Recorder's queue
-  (microseconds: the Recorder encodes and writes on its own thread) and keeps the state numbers in memory for
-  a download of a play still running;
+  (microseconds: the Recorder encodes and writes on its own thread) and keeps the state numbers (and the kept
+  frames) in memory for a download of a play still running;
 - frame_pushed passes every pushed JPEG on; the Recorder keeps at most one per 0.1 s of simulated time;
 - play_ended (also for a play cut short by Stop, a new play or the tab going away) finishes the file on the
   finisher thread (close: drain, footer, fsync, rename), so the target is a complete recording or nothing.
@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 RECENT_DIR = "recent"
 RECENT_KEEP_S = 3600.0  # how long the last play of a closed tab stays in recent/
 MAX_LOGGED_STEPS = 100_000  # the in-memory copy for downloads mid-play (episodes end at their time limit anyway)
+MAX_LOGGED_FRAME_BYTES = 32 << 20  # its frames (flat drawings: 3-6 KB each, so about 10 minutes at 10 Hz)
 FINISH_TIMEOUT_S = 60.0
 
 
@@ -79,6 +80,8 @@ class LiveRecording:
         self.lock = threading.Lock()
         self.steps: list[tuple] = []  # (t, action, reward, terminated, truncated, _Bodies, batch)
         self.count = 0  # steps recorded (the in-memory copy stops at MAX_LOGGED_STEPS, the file does not)
+        self.frames: list[tuple[float, bytes]] = []  # kept frames (t, JPEG), up to MAX_LOGGED_FRAME_BYTES
+        self._frame_bytes = 0
         self._last_frame_t = -math.inf
         self.open = True
         self.done: concurrent.futures.Future[Finished] = concurrent.futures.Future()
@@ -130,23 +133,31 @@ class LiveRecording:
             if t >= self._last_frame_t + 1.0 / MAX_FRAME_HZ - 1e-6:  # the Recorder's own rule, checked before queueing
                 self._last_frame_t = t
                 self._put("add_frame", jpeg, t)
+                if self._frame_bytes + len(jpeg) <= MAX_LOGGED_FRAME_BYTES:
+                    self.frames.append((t, jpeg))
+                    self._frame_bytes += len(jpeg)
 
     def stop_adding(self) -> None:
         with self.lock:
             self.open = False
 
     def snapshot(self) -> bytes:
-        """The steps so far as a complete recording of their own (without camera frames): written to a temporary
-        file with a fresh Recorder and read back. For a download while the play still runs."""
+        """The steps (and frames) so far as a complete recording of their own: written to a temporary file with a
+        fresh Recorder and read back. For a download while the play still runs."""
         with self.lock:
-            steps = list(self.steps)
+            steps, frames = list(self.steps), list(self.frames)
         metadata = dict(self.metadata, partial=True)
         with tempfile.TemporaryDirectory(prefix="kinetix-snapshot-") as folder:
             path = Path(folder) / "snapshot.mcap"
             with Recorder(path, self.level_file, metadata=metadata, env_config=self.env_config,
                           env_params=self.env_params) as recorder:
+                # In time order, as while playing: the file's log times never go backwards (the Recorder clamps
+                # them), so frames must come between the steps they show, not after all of them.
+                frames.reverse()
                 for t, *item, batch in steps:
                     recorder.add_step(*item, t=t, batch=batch)
+                    while frames and frames[-1][0] <= t:
+                        recorder.add_frame(frames[-1][1], frames.pop()[0])
             return path.read_bytes()
 
 
@@ -249,7 +260,7 @@ class PlayRecorder(PlayListener):
 
     def _close(self, live: LiveRecording, previous: LiveRecording | None, result: str, steps: int) -> None:
         path = None
-        live.steps = []  # only a running play's download needs them; _last keeps this object until the next play
+        live.steps, live.frames = [], []  # only a running play's download needs them; _last keeps this object
         try:
             if live.recorder is not None:  # None: it could not be opened (logged)
                 path = live.recorder.close()

@@ -1,8 +1,8 @@
 """Recordings in the tab: download the current or last play, and replay any recording with a timeline.
 
 `RecordingPanel(recorder)` is a session.PlayListener; on every new session it adds a "Recordings" folder:
-- **Download recording**: the play running now (its steps so far, as a complete file without camera frames;
-  see PlayRecorder.download) or else the tab's last play, as an .mcap file;
+- **Download recording**: the play running now (its steps so far, as a complete file; see
+  PlayRecorder.download) or else the tab's last play, as an .mcap file;
 - **Replay last play** and **Replay a file (.mcap)** (an upload): open a `Replay`;
 - a status line for what went wrong (a bad upload: not MCAP, not ours, truncated, too large).
 

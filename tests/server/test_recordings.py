@@ -204,6 +204,7 @@ def test_download_sends_the_last_play_and_mid_play_the_steps_so_far(app, make_cl
     assert "so-far" in name
     partial = read_recording(data)
     assert partial.num_steps >= 12 and partial.metadata["extra"]["partial"] is True
+    assert len(partial.frames) >= 2 and np.all(np.diff(partial.frame_times) >= 0.1 - 1e-6)
     assert verify(partial).ok
 
 

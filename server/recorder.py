@@ -1,8 +1,9 @@
 """Every browser play, human or agent, recorded to an MCAP file (kinetix.recording.Recorder), without slowing play.
 
 `PlayRecorder` is a session.PlayListener (`manager.add_listener(PlayRecorder(directory))`):
-- play_started opens a Recorder under `<directory>/recent/` with who plays, the gallery level id (if any), the
-  seed (0: a level's start is fixed) and the env config and params the play steps with;
+- play_started sets up a recording under `<directory>/recent/` with who plays, the gallery level id (if any),
+  the seed (0: a level's start is fixed) and the env config and params the play steps with; the Recorder itself
+  is opened on the finisher thread (LiveRecording.open_file), so starting a play costs 0.1 ms;
 - play_stepped hands the action, reward, flags and the bodies' state after the step to the Recorder's queue
   (microseconds: the Recorder encodes and writes on its own thread) and keeps the state numbers (and the kept
   frames) in memory for a download of a play still running;
@@ -266,6 +267,8 @@ class PlayRecorder(PlayListener):
                 path = live.recorder.close()
         except (RecordingError, OSError) as error:
             log.warning("recording %s not finished: %s", live.path.name, error)
+        except Exception:  # a bug must not leave `done` unresolved (the gallery and downloads wait on it)
+            log.exception("recording %s not finished", live.path.name)
         meta = live.metadata
         live.done.set_result(Finished(path, meta["player"], meta["level_id"] or None, result, steps,
                                       steps * live.tick))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import html
 import logging
+import math
 import threading
 import time
 from pathlib import Path
@@ -39,7 +40,14 @@ RESULT_TEXT = {"solved": "Solved", "failed": "Failed", "truncated": "Time is up"
 
 
 def step_seconds(recording: Recording) -> float:
-    return float(recording.env["params"]["sim"]["dt"]) * int(recording.env["frame_skip"])
+    """Simulated seconds per recorded step; RecordingError for a file whose env description does not say."""
+    try:
+        seconds = float(recording.env["params"]["sim"]["dt"]) * int(recording.env["frame_skip"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise RecordingError(f"the recording's env description has no usable time step ({error})") from None
+    if not math.isfinite(seconds) or seconds <= 0:
+        raise RecordingError(f"the recording's time step {seconds} is not a positive number")
+    return seconds
 
 
 def outcome(recording: Recording) -> str:
@@ -80,7 +88,7 @@ class Replay:
     @property
     def step(self) -> int:
         with self._lock:
-            return int(self.position)
+            return math.floor(self.position)  # -0.5 is still the start (-1), not step 0
 
     def start(self) -> None:
         session = self.session
@@ -125,6 +133,13 @@ class Replay:
     # ------------------------------------------------------------------ the replay thread
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception:  # e.g. the tab went away between two looks; a replay must not die with a traceback
+            if not self._stopping and not self.session.closed:
+                log.exception("replay stopped")
+
+    def _loop(self) -> None:
         before = time.perf_counter()
         last_slider = 0.0
         while not self._stopping:
@@ -135,7 +150,7 @@ class Replay:
                     if self.position >= self.last:
                         self.playing = False
                     self._dirty = True
-                step, dirty, playing = int(self.position), self._dirty, self.playing
+                step, dirty, playing = math.floor(self.position), self._dirty, self.playing
                 self._dirty = False
             before = now
             canvas = self.session._canvas() if self.session.client is not None else None
@@ -260,6 +275,7 @@ class SessionPanel:
     def open_bytes(self, data: bytes, title: str) -> bool:
         try:
             recording = read_recording(data, frames=False)
+            step_seconds(recording)
         except RecordingError as error:
             message = str(error).replace("the recording", title, 1)
             self.say(f"**Cannot replay {html.escape(title)}:** {html.escape(message)}", error=True)

@@ -257,7 +257,8 @@ def make_router(store: Store, admin_token: str | None = None) -> APIRouter:
 
     @router.get("/levels/{level_id}/best-run.mcap", response_class=Response,
                 summary="The MCAP recording of the level's best human solve (docs/recording.md)",
-                responses={200: {"content": {"application/octet-stream": {}}},
+                responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string",
+                                                                                     "format": "binary"}}}},
                            404: {"description": "unknown level, or no recorded best run yet"}})
     async def best_run(level_id: str) -> Response:
         await call(store.thumbnail, level_id)  # 404 for an unknown id

@@ -102,6 +102,8 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="most browser tabs served at once; more get a 'server full' message (default: 8)")
     parser.add_argument("--warm", type=comma_list(str, allowed={"s", "m", "l", "none"}), default=["s", "m", "l"],
                         help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
+    parser.add_argument("--no-record", dest="record", action="store_false",
+                        help="do not record plays (default: every play is recorded to <data>/recordings)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:

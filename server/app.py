@@ -40,6 +40,7 @@ class Config:
     gallery: bool = True  # include the gallery router when server.gallery is installed
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
+    record: bool = True  # record every play to MCAP (server.recorder); the tab's Recordings folder needs it
 
 
 class App:
@@ -53,6 +54,7 @@ class App:
         self._thread: threading.Thread | None = None
         self._socket: socket.socket | None = None
         self.store = None  # the gallery Store, once started with the gallery on
+        self.recorder = None  # the PlayRecorder (server.recorder), once started
 
     @property
     def port(self) -> int:
@@ -106,7 +108,10 @@ class App:
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
                                       editor_factory=self.config.editor_factory,
                                       initial_level=self._initial_level())
-        app = create_app(self.manager, self.viser.get_port(), gallery_router=self._gallery_router())
+        router = self._gallery_router()
+        if self.recorder is None:
+            self._start_recordings()
+        app = create_app(self.manager, self.viser.get_port(), gallery_router=router)
         config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
         self._uvicorn = uvicorn.Server(config)
         self._uvicorn.install_signal_handlers = lambda: None  # the main thread handles Ctrl+C
@@ -138,14 +143,38 @@ class App:
         from server.gallery.tab import GalleryLink
 
         self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir())
-        GalleryLink(self.store).attach(self.manager)
+        self._start_recordings()
+        link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
+        link.attach(self.manager)
+        if link.runs is not None:
+            link.runs.remove_orphans()
         return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
+
+    def _start_recordings(self) -> None:
+        """Record every play (server.recorder) into the gallery's recordings folder, else <data>/recordings, and
+        give each tab its Recordings folder (server.replay); leftovers of a killed server are removed first."""
+        from server.recorder import PlayRecorder
+        from server.replay import RecordingPanel
+
+        if self.store is not None and self.store.recordings_dir is not None:
+            directory = self.store.recordings_dir
+        else:
+            directory = Path(self.config.data or default_data_dir()) / "recordings"
+        self.recorder = PlayRecorder(directory, enabled=self.config.record)
+        if self.config.record:
+            removed = self.recorder.clean_up()
+            if removed:
+                log.info("removed %d partial or old recordings from %s", len(removed), directory)
+        self.manager.add_listener(self.recorder)
+        self.manager.add_listener(RecordingPanel(self.recorder))
 
     def stop(self) -> None:
         from server import play
 
         if self.manager is not None:
             self.manager.close_all()
+        if self.recorder is not None:
+            self.recorder.close()  # finish recordings of plays cut short by the shutdown
         if not play.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
             log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
@@ -169,7 +198,8 @@ def serve(args) -> int:
     logging.getLogger("websockets").setLevel(logging.WARNING)
     config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
                     db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
-                    warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"))
+                    warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"),
+                    record=getattr(args, "record", True))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

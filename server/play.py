@@ -56,6 +56,9 @@ class StepResult:
     solved: bool
     failed: bool
     timestep: int
+    # Stepped alone (1) or in a compiled batch of this many plays, whose numbers can differ in the last bits:
+    # recordings note it so replay steps the same way. Not part of equality (the same step outcome).
+    batch: int = dataclasses.field(default=1, compare=False)
 
 
 class Stepper:
@@ -130,7 +133,7 @@ class Stepper:
             next_states, numbers = outs
             reward, terminated, truncated, solved, failed, timestep = jax.device_get(numbers)
             results += [(next_states[i], StepResult(float(reward[i]), bool(terminated[i]), bool(truncated[i]),
-                                                    bool(solved[i]), bool(failed[i]), int(timestep[i])))
+                                                    bool(solved[i]), bool(failed[i]), int(timestep[i]), bucket))
                         for i in range(n)]
         return results
 

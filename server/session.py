@@ -59,6 +59,12 @@ class PlayListener:
     def play_ended(self, session: Session, result: str, steps: int, seconds: float) -> None:
         """The episode ended ("solved" | "failed" | "truncated" | "nan"), or was stopped ("stopped")."""
 
+    def session_opened(self, session: Session) -> None:
+        """A tab's session was built (its GUI exists): add per-tab GUI here (e.g. server.replay's panel)."""
+
+    def session_closed(self, session: Session) -> None:
+        """The tab went away (a running play was ended as "stopped" just before)."""
+
 
 class Controller:
     """Chooses actions instead of the keyboard while it is set on a playing session (e.g. an agent)."""
@@ -182,9 +188,11 @@ class Session:
         self.author_token: str | None = None  # the tab's gallery author token (from localStorage, via /keys)
         self.gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
+        self.replay = None  # a server.replay.Replay while the tab shows a recording (mode "replay")
         self._build_gui()
         self._wire_pointer()
         self.refresh(force=True)
+        manager.notify("session_opened", self)
 
     # ------------------------------------------------------------------ GUI and pointer wiring
 
@@ -370,7 +378,11 @@ class Session:
         with self.lock:
             if self.mode == "edit":
                 return
-            if self.mode != "ended":  # stopped by the player before the episode ended
+            if self.mode == "replay":  # leaving a replay (server.replay): no play to end
+                replay, self.replay = self.replay, None
+                if replay is not None:
+                    replay.stop()
+            elif self.mode != "ended":  # stopped by the player before the episode ended
                 stepper, _, params = self._play
                 self.manager.notify("play_ended", self, "stopped", self._steps,
                                     self._steps * float(params.sim.dt) * stepper.frame_skip)
@@ -584,11 +596,19 @@ class Session:
     def close(self) -> None:
         """Stop the play loop and drop references (the tab is gone)."""
         with self.lock:
+            if self.mode in ("play", "paused") and self._play is not None:  # cut short: listeners finish it
+                stepper, _, params = self._play
+                self.manager.notify("play_ended", self, "stopped", self._steps,
+                                    self._steps * float(params.sim.dt) * stepper.frame_skip)
             self.closed = True
+            if self.replay is not None:
+                self.replay.stop()
+                self.replay = None
             self.mode = "edit"
             self._play = None
             self.held.clear()
             self.manager.scheduler.wake()  # it drops this session on its next look
+        self.manager.notify("session_closed", self)
         self.panel = None
         self.client = None
 

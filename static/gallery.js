@@ -46,6 +46,10 @@ function card(level) {
   q(".score").textContent = String(level.stats.score);
   q(".play").href = `/?level=${id}&mode=play`;
   q(".edit").href = `/?level=${id}`;
+  // The recording of the fastest human solve, replayed in the editor tab (GET /api/levels/{id}/best-run.mcap).
+  q(".best-run").disabled = !level.stats.has_best_run;
+  q(".best-run").title = level.stats.has_best_run ? "Replay the fastest human solve" : "No recorded solve yet";
+  q(".best-run").addEventListener("click", () => { location.href = `/?level=${id}&mode=replay`; });
   const mine = myVotes()[level.id] || 0;
   q(".up").classList.toggle("mine", mine === 1);
   q(".down").classList.toggle("mine", mine === -1);

@@ -16,6 +16,7 @@ from kinetix.recording.errors import RecordingError
 from kinetix.recording.reader import Recording, read_recording
 from kinetix.recording.replay import (
     ReplayCheck,
+    batched_step_function,
     make_env,
     recorded_level,
     replay_frames,
@@ -25,5 +26,6 @@ from kinetix.recording.replay import (
 )
 from kinetix.recording.writer import Recorder, remove_partial_files
 
-__all__ = ["Recorder", "Recording", "RecordingError", "ReplayCheck", "make_env", "read_recording", "replay_frames",
-           "recorded_level", "remove_partial_files", "replay_states", "step_function", "verify"]
+__all__ = ["Recorder", "Recording", "RecordingError", "ReplayCheck", "batched_step_function", "make_env",
+           "read_recording", "replay_frames", "recorded_level", "remove_partial_files", "replay_states",
+           "step_function", "verify"]

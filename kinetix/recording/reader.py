@@ -42,6 +42,7 @@ class Recording:
     angular_velocity: np.ndarray  # (T, K) float32
     frame_times: np.ndarray  # (F,) float64 seconds since the start
     frames: list[bytes]  # (F,) JPEG bytes
+    batches: np.ndarray | None = None  # (T,) int32: 1 for a single step, n for a step vmapped over n plays
 
     @property
     def num_steps(self) -> int:
@@ -180,7 +181,10 @@ def _assemble(name, meta, summary, level_json, npz, steps, states, frame_list) -
             velocity=column("velocity", (2,)), angular_velocity=column("angular_velocity", ()),
             frame_times=(np.asarray([t for t, _ in frame_list], np.int64) - start) / 1e9,
             frames=[base64.b64decode(f["data"]) for _, f in frame_list],
+            batches=np.asarray([int(s.get("batch", 1)) for _, s in steps], np.int32),
         )
+        if np.any(recording.batches < 1):
+            raise ValueError("a step's batch size is below 1")
     except RecordingError:
         raise
     except (ValueError, KeyError, TypeError) as error:

@@ -28,6 +28,40 @@ def step_function(config):
     return jax.jit(env.transition)
 
 
+@functools.cache
+def batched_step_function(config, batch: int):
+    """The transition vmapped over `batch` plays, jitted: what the browser server runs when it steps several tabs
+    at once (its results differ bitwise from `step_function`'s; a play's lane does not depend on the others).
+    `step(state, action, params)` runs the play in every lane and returns lane 0, so recorded batched steps
+    re-simulate bitwise."""
+    import jax.numpy as jnp
+
+    from kinetix.env import KinetixEnv
+
+    env = KinetixEnv(config, lambda key: None)
+    many = jax.jit(jax.vmap(env.transition))
+
+    def step(state, action, params):
+        copies = lambda x: jnp.stack([x] * batch)  # noqa: E731
+        out = many(jax.tree.map(copies, state), np.stack([np.asarray(action)] * batch), jax.tree.map(copies, params))
+        return jax.tree.map(lambda x: x[0], out)
+
+    return step
+
+
+def _stepper(config, recording: Recording):
+    """step(i, state, action, params) using the program step i was recorded with (single or batched)."""
+    single = step_function(config)
+    batches = recording.batches
+
+    def step(i, state, action, params):
+        if batches is None or batches[i] == 1:
+            return single(state, action, params)
+        return batched_step_function(config, int(batches[i]))(state, action, params)
+
+    return step
+
+
 def make_env(recording: Recording, observation: str | None = None):
     """(env, params) as recorded; `observation` overrides the observation type (it does not change the physics)."""
     from jax2d.state import SimParams, SolverConfig
@@ -64,11 +98,11 @@ def replay_states(recording: Recording, observation: str | None = None) -> Itera
     After a step that ended an episode the next one starts again from the recorded level, as when playing.
     """
     env, params = make_env(recording, observation)
-    step = step_function(env.config)
+    step = _stepper(env.config, recording)
     start = env.initial_state(jax.random.PRNGKey(0), params)  # reset_single: the key is not used
     state = start
     for i in range(recording.num_steps):
-        state, *_ = step(state, recording.actions[i], params)
+        state, *_ = step(i, state, recording.actions[i], params)
         yield i, state, env
         if recording.terminated[i] or recording.truncated[i]:
             state = start
@@ -83,12 +117,12 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
 def verify(recording: Recording) -> ReplayCheck:
     """Re-simulate every step and compare the bodies' states, rewards and end flags with the recorded ones."""
     env, params = make_env(recording)
-    step = step_function(env.config)
+    step = _stepper(env.config, recording)
     start = env.initial_state(jax.random.PRNGKey(0), params)
     state = start
     b = recording.bodies
     for i in range(recording.num_steps):
-        state, reward, terminated, truncated, _ = step(state, recording.actions[i], params)
+        state, reward, terminated, truncated, _ = step(i, state, recording.actions[i], params)
         bodies = state.level.sim.bodies
         checks = (("position", np.asarray(bodies.position)[b], recording.position[i]),
                   ("rotation", np.asarray(bodies.angle)[b], recording.rotation[i]),

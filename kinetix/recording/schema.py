@@ -3,8 +3,9 @@
 Layout (one MCAP file, zstd chunks, profile "kinetix-recording"):
   /level        once   our level format (JSON text of kinetix.levels.dumps), readable by people and Foxglove
   /level/exact  once   attachment "level.npz": every array of the initial Level, so replay starts bitwise equal
-  /step         per env step: {"step", "action", "reward", "terminated", "truncated"}; `action` is the exact array
-                (list of ints, or floats of float32 values: a float32 widened to a JSON double round-trips exactly)
+  /step         per env step: {"step", "action", "reward", "terminated", "truncated"[, "batch"]}; `action` is the exact
+                array (list of ints, or floats of float32 values: a float32 widened to a JSON double round-trips
+                exactly); `batch` (only when not 1): the step ran in a vmapped batch of that many plays
   /state        per env step: the dynamic state after the step of each active body: position, rotation, velocity,
                 angular velocity, as JSON numbers (exact float32, same reason)
   /camera       rendered frames, at most 10 Hz, foxglove.CompressedImage (jsonschema, JPEG, base64 data)
@@ -54,6 +55,8 @@ STEP_SCHEMA = {
         "reward": {"type": "number"},
         "terminated": {"type": "boolean"},
         "truncated": {"type": "boolean"},
+        "batch": {"type": "integer", "description": "stepped by a vmapped transition over this many plays "
+                                                    "(absent: 1, a single step)"},
     },
 }
 STATE_SCHEMA = {

@@ -168,11 +168,14 @@ class Recorder:
     def _now(self) -> float:
         return time.monotonic() - self._start_mono
 
-    def add_step(self, action, reward, terminated, truncated, state, t: float | None = None) -> None:
-        """One env step. `t`: seconds since the recording started (default: the wall clock)."""
+    def add_step(self, action, reward, terminated, truncated, state, t: float | None = None, *,
+                 batch: int = 1) -> None:
+        """One env step. `t`: seconds since the recording started (default: the wall clock). `batch`: the step
+        was computed by `jax.vmap` of the transition over this many plays (the browser server batches tabs), whose
+        results differ bitwise from a single step; replay then steps the same way (replay.batched_step_function)."""
         self._check_open()
         self._queue.put(("step", self._now() if t is None else float(t), action, reward, terminated, truncated,
-                         state))
+                         state, int(batch)))
 
     def wants_frame(self, t: float | None = None) -> bool:
         """Whether a frame at `t` would be kept (frames are kept at most every 1/10 s): skip encoding otherwise."""
@@ -285,7 +288,8 @@ class Recorder:
             self._file.close()
             self.writer_cpu_seconds = time.thread_time() - cpu0  # what recording cost the machine, for benchmarks
 
-    def _write_step(self, writer: Writer, ids: dict, t: float, action, reward, terminated, truncated, state) -> None:
+    def _write_step(self, writer: Writer, ids: dict, t: float, action, reward, terminated, truncated, state,
+                    batch: int) -> None:
         index = self._summary["steps"]
         log = self._log_time(t)
         action = np.asarray(action)
@@ -293,6 +297,8 @@ class Recorder:
         terminated, truncated = bool(terminated), bool(truncated)
         step = {"step": index, "action": action.tolist(), "reward": reward, "terminated": terminated,
                 "truncated": truncated}
+        if batch != 1:  # absent for single steps, so such files are as before
+            step["batch"] = batch
         writer.add_message(ids[schema.TOPIC_STEP], log, schema.dumps(step), log, sequence=index)
         position, angle, velocity, angular = _body_arrays(state)
         b = self._bodies

@@ -16,6 +16,7 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from server.gallery.runs import BestRuns
 from server.gallery.store import SIZES, SORTS, Store, StoreError, check_admin
 
 MAX_BODY = 1_000_000  # bytes
@@ -31,6 +32,8 @@ class Stats(BaseModel):
     agent_solve_rate: float | None
     best_human_seconds: float | None
     best_human_steps: int | None
+    has_best_run: bool = Field(description="a recording of the best human solve can be downloaded from "
+                                           "/api/levels/{id}/best-run.mcap")
     votes_up: int
     votes_down: int
     score: int
@@ -249,5 +252,24 @@ def make_router(store: Store, admin_token: str | None = None) -> APIRouter:
     @router.get("/levels/{level_id}/stats", response_model=Stats, summary="Plays, solve rates, best time, votes")
     async def stats(level_id: str) -> dict:
         return await call(store.stats, level_id)
+
+    runs = BestRuns(store) if store.recordings_dir is not None else None
+
+    @router.get("/levels/{level_id}/best-run.mcap", response_class=Response,
+                summary="The MCAP recording of the level's best human solve (docs/recording.md)",
+                responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string",
+                                                                                     "format": "binary"}}}},
+                           404: {"description": "unknown level, or no recorded best run yet"}})
+    async def best_run(level_id: str) -> Response:
+        await call(store.thumbnail, level_id)  # 404 for an unknown id
+        path = await call(runs.best_run_file, level_id) if runs is not None else None
+        if path is None:
+            raise HTTPException(404, f"level {level_id!r} has no recorded best run yet: solve it in the browser")
+        try:
+            data = await run_in_threadpool(path.read_bytes)
+        except FileNotFoundError:  # superseded between the lookup and the read
+            raise HTTPException(404, f"level {level_id!r} has no recorded best run yet") from None
+        return Response(data, media_type="application/octet-stream", headers={
+            "Content-Disposition": f'attachment; filename="best-run-{level_id}.mcap"', "Cache-Control": "no-store"})
 
     return router

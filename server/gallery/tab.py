@@ -6,7 +6,9 @@
 - `/?level=<id>` opens that level in the tab (`&mode=play` starts playing it); the page's query reaches Python
   through the /keys hello;
 - every finished play of a level that is in the gallery is recorded as a human play (solved, steps, seconds of
-  simulated time, so pauses and a slow machine do not change a player's time).
+  simulated time, so pauses and a slow machine do not change a player's time); with the server's PlayRecorder,
+  a human solve that beats the level's best keeps its recording (server.gallery.runs);
+- `/?level=<id>&mode=replay` replays the level's best run (server.replay).
 
 A save made while editing a gallery level is a remix: it keeps that level as its parent. The author token comes
 from the browser's localStorage (sent with the /keys hello); a save that issues a new token hands it back to the
@@ -20,6 +22,7 @@ import json
 import logging
 from urllib.parse import parse_qs
 
+from server.gallery.runs import BestRuns
 from server.gallery.store import Store, StoreError, Unauthorized
 
 log = logging.getLogger(__name__)
@@ -28,8 +31,12 @@ OPEN_LIST_SIZE = 50  # levels offered by "Open from gallery" (newest first); the
 
 
 class GalleryLink:
-    def __init__(self, store: Store):
+    def __init__(self, store: Store, recorder=None):
         self.store = store
+        # With the server's PlayRecorder, the best human solve of each level keeps its recording (runs.BestRuns);
+        # without it (kinetix serve --no-record) the kept best runs can still be replayed.
+        self.recorder = recorder
+        self.runs = BestRuns(store) if store.recordings_dir is not None else None
 
     def attach(self, manager) -> None:
         manager.on_session_gui = self.build_gui
@@ -131,14 +138,35 @@ class GalleryLink:
         except (StoreError, ValueError) as error:
             session.client.add_notification("Cannot open that level", str(error), color="red")
             return
-        if (params.get("mode") or [""])[0] == "play":
+        mode = (params.get("mode") or [""])[0]
+        if mode == "play":
             session.play()
+        elif mode == "replay":
+            self.replay_best_run(session, level_id)
+
+    def replay_best_run(self, session, level_id: str) -> bool:
+        """Replay the level's best run in the tab (`?level=<id>&mode=replay`); a notification if it has none."""
+        from server.replay import open_best_run
+
+        path = self.runs.best_run_file(level_id) if self.runs is not None else None
+        if path is None:
+            session.client.add_notification("No best run yet", "Nobody has solved this level with a recording yet: "
+                                            "play it!", color="yellow")
+            return False
+        return open_best_run(session, path, f"the best run of {session.editor.spec.name or level_id}")
 
     def record_play(self, session, result: str, steps: int, seconds: float) -> None:
         if session.gallery_id is None:  # an unsaved level has no gallery entry to count the play against
             return
+        level_id = session.gallery_id
+        best = self.runs.candidate(self.recorder, session, result, steps, seconds) if self.runs else None
         try:
-            self.store.record_play(session.gallery_id, "human", solved=result == "solved", steps=int(steps),
-                                   seconds=float(seconds))
+            self.store.record_play(level_id, "human", solved=result == "solved", steps=int(steps),
+                                   seconds=float(seconds), recording_path=best)
         except StoreError as error:  # e.g. the level was deleted meanwhile; a lost statistic is not worth a crash
-            log.warning("play not recorded for %s: %s", session.gallery_id, error)
+            log.warning("play not recorded for %s: %s", level_id, error)
+            if best is not None:
+                self.runs.discard(best)
+            return
+        if best is not None:
+            self.runs.prune(level_id)  # the previous best run's file goes

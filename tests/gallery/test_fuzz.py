@@ -58,7 +58,7 @@ def required_fields(schema: dict, spec: dict) -> set[str]:
           phases=[Phase.explicit, Phase.reuse, Phase.generate, Phase.shrink])
 @given(method=st.sampled_from(["GET", "POST", "PUT", "DELETE"]),
        target=st.sampled_from(["", "/{level_id}", "/{level_id}/thumbnail.png", "/{level_id}/vote", "/{level_id}/plays",
-                               "/{level_id}/stats"]),
+                               "/{level_id}/stats", "/{level_id}/best-run.mcap"]),
        level_id=st.sampled_from(["known", "unknown", "a b", "%2e%2e", "x" * 40])
        | st.text(min_size=1, max_size=6).filter(lambda s: s.strip(". ")),
        params=query, body=bodies,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -18,11 +19,14 @@ def running_app(**config):
     from server.app import App, Config
 
     # No background compiles of batched steps: tests that need them ask for them (test_play_batch.py).
-    app = App(Config(**{"port": 0, "gallery": False, "warm_batches": False, **config})).start()
-    try:
-        yield app
-    finally:
-        app.stop()
+    # Recordings (on by default) go to a temporary data dir unless the test gives one.
+    with tempfile.TemporaryDirectory(prefix="kinetix-test-data-") as data:
+        app = App(Config(**{"port": 0, "gallery": False, "warm_batches": False, "data": Path(data), **config}))
+        app.start()
+        try:
+            yield app
+        finally:
+            app.stop()
 
 
 @pytest.fixture

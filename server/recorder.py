@@ -1,0 +1,321 @@
+"""Every browser play, human or agent, recorded to an MCAP file (kinetix.recording.Recorder), without slowing play.
+
+`PlayRecorder` is a session.PlayListener (`manager.add_listener(PlayRecorder(directory))`):
+- play_started sets up a recording under `<directory>/recent/` with who plays, the gallery level id (if any),
+  the seed (0: a level's start is fixed) and the env config and params the play steps with; the Recorder itself
+  is opened on the finisher thread (LiveRecording.open_file), so starting a play costs 0.1 ms;
+- play_stepped hands the action, reward, flags and the bodies' state after the step to the Recorder's queue
+  (microseconds: the Recorder encodes and writes on its own thread) and keeps the state numbers (and the kept
+  frames) in memory for a download of a play still running;
+- frame_pushed passes every pushed JPEG on; the Recorder keeps at most one per 0.1 s of simulated time;
+- play_ended (also for a play cut short by Stop, a new play or the tab going away) finishes the file on the
+  finisher thread (close: drain, footer, fsync, rename), so the target is a complete recording or nothing.
+
+Times in the file are simulated seconds (steps x frame skip x dt), as for the gallery's best times, so a pause
+or a slow machine does not stretch a recording.
+
+Retention: `recent/` holds each tab's last play only (the previous one is deleted when the next one is
+finished); after a tab closes its last file is kept for RECENT_KEEP_S and then swept (at start-up and whenever a
+play finishes). The gallery keeps best runs elsewhere (server.gallery.runs).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import logging
+import math
+import os
+import secrets
+import tempfile
+import threading
+import time
+import types
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+from kinetix.recording import Recorder, RecordingError, remove_partial_files
+from kinetix.recording.schema import MAX_FRAME_HZ
+from server.session import PlayListener, Session
+
+log = logging.getLogger(__name__)
+
+RECENT_DIR = "recent"
+RECENT_KEEP_S = 3600.0  # how long the last play of a closed tab stays in recent/
+MAX_LOGGED_STEPS = 100_000  # the in-memory copy for downloads mid-play (episodes end at their time limit anyway)
+MAX_LOGGED_FRAME_BYTES = 32 << 20  # its frames (flat drawings: 3-6 KB each, so about 10 minutes at 10 Hz)
+FINISH_TIMEOUT_S = 60.0
+
+
+@dataclasses.dataclass
+class Finished:
+    """A finished recording of one play."""
+
+    path: Path | None  # None when writing it failed (logged)
+    player: str
+    level_id: str | None
+    result: str  # solved | failed | truncated | nan | stopped
+    steps: int
+    seconds: float
+
+
+class _Bodies(types.SimpleNamespace):
+    """The bodies' dynamic state after a step as numpy arrays (what Recorder.add_step reads from a SimState)."""
+
+
+class LiveRecording:
+    """One play being recorded: its Recorder (opened on the finisher thread: building the level's JSON and npz
+    takes milliseconds the thread starting the play should not spend) and an in-memory copy of its steps for
+    downloads mid-play. Steps and frames that come before the Recorder is open wait in a list."""
+
+    def __init__(self, path: Path, level_file, metadata: dict, env_config, env_params, tick: float):
+        self.path = path
+        self.level_file, self.metadata = level_file, metadata
+        self.env_config, self.env_params = env_config, env_params
+        self.tick = tick  # simulated seconds per agent step
+        self.recorder: Recorder | None = None
+        self.failed: BaseException | None = None  # the Recorder could not be opened (logged; nothing is written)
+        self._pending: list[tuple] = []  # (method name, args, kwargs) until the Recorder is open
+        self.lock = threading.Lock()
+        self.steps: list[tuple] = []  # (t, action, reward, terminated, truncated, _Bodies, batch)
+        self.count = 0  # steps recorded (the in-memory copy stops at MAX_LOGGED_STEPS, the file does not)
+        self.frames: list[tuple[float, bytes]] = []  # kept frames (t, JPEG), up to MAX_LOGGED_FRAME_BYTES
+        self._frame_bytes = 0
+        self._last_frame_t = -math.inf
+        self.open = True
+        self.done: concurrent.futures.Future[Finished] = concurrent.futures.Future()
+
+    def open_file(self) -> None:
+        """Open the Recorder and hand it what arrived meanwhile (on the finisher thread, before any close)."""
+        try:
+            recorder = Recorder(self.path, self.level_file, metadata=self.metadata, env_config=self.env_config,
+                                env_params=self.env_params)
+        except (RecordingError, OSError) as error:  # e.g. a full disk: the play goes on unrecorded
+            log.warning("play not recorded: %s", error)
+            with self.lock:
+                self.failed, self._pending = error, []
+            return
+        with self.lock:
+            for name, args, kwargs in self._pending:
+                getattr(recorder, name)(*args, **kwargs)
+            self._pending = []
+            self.recorder = recorder
+
+    def _put(self, name: str, *args, **kwargs) -> None:  # with self.lock held
+        if self.recorder is not None:
+            getattr(self.recorder, name)(*args, **kwargs)
+        elif self.failed is None:
+            self._pending.append((name, args, kwargs))
+
+    def add_step(self, action: np.ndarray, state, result) -> None:
+        bodies = state.level.sim.bodies
+        # The step's arrays are computed already (the StepResult was fetched), so these copies do not wait.
+        snapshot = _Bodies(bodies=_Bodies(position=np.asarray(bodies.position), angle=np.asarray(bodies.angle),
+                                          velocity=np.asarray(bodies.velocity),
+                                          angular_velocity=np.asarray(bodies.angular_velocity)))
+        with self.lock:
+            if not self.open:
+                return
+            self.count += 1
+            t = self.count * self.tick
+            batch = getattr(result, "batch", 1)
+            item = (t, np.array(action), result.reward, result.terminated, result.truncated, snapshot, batch)
+            if len(self.steps) < MAX_LOGGED_STEPS:
+                self.steps.append(item)
+            self._put("add_step", *item[1:6], t=t, batch=batch)
+
+    def add_frame(self, jpeg: bytes) -> None:
+        with self.lock:
+            if not self.open or not self.count:
+                return
+            t = self.count * self.tick  # the frame shows the latest step
+            if t >= self._last_frame_t + 1.0 / MAX_FRAME_HZ - 1e-6:  # the Recorder's own rule, checked before queueing
+                self._last_frame_t = t
+                self._put("add_frame", jpeg, t)
+                if self._frame_bytes + len(jpeg) <= MAX_LOGGED_FRAME_BYTES:
+                    self.frames.append((t, jpeg))
+                    self._frame_bytes += len(jpeg)
+
+    def stop_adding(self) -> None:
+        with self.lock:
+            self.open = False
+
+    def snapshot(self) -> bytes:
+        """The steps (and frames) so far as a complete recording of their own: written to a temporary file with a
+        fresh Recorder and read back. For a download while the play still runs."""
+        with self.lock:
+            steps, frames = list(self.steps), list(self.frames)
+        metadata = dict(self.metadata, partial=True)
+        with tempfile.TemporaryDirectory(prefix="kinetix-snapshot-") as folder:
+            path = Path(folder) / "snapshot.mcap"
+            with Recorder(path, self.level_file, metadata=metadata, env_config=self.env_config,
+                          env_params=self.env_params) as recorder:
+                # In time order, as while playing: the file's log times never go backwards (the Recorder clamps
+                # them), so frames must come between the steps they show, not after all of them.
+                frames.reverse()
+                for t, *item, batch in steps:
+                    recorder.add_step(*item, t=t, batch=batch)
+                    while frames and frames[-1][0] <= t:
+                        recorder.add_frame(frames[-1][1], frames.pop()[0])
+            return path.read_bytes()
+
+
+class PlayRecorder(PlayListener):
+    """Records every play of every session; see the module docstring. `enabled=False` records nothing."""
+
+    def __init__(self, directory: str | os.PathLike, *, enabled: bool = True):
+        self.directory = Path(directory)
+        self.recent = self.directory / RECENT_DIR
+        self.enabled = enabled
+        self._lock = threading.Lock()
+        # Keyed by the session itself, weakly: an entry goes with its session, and a closed tab's last play stays
+        # reachable for as long as someone holds the session (e.g. the gallery's record_play thread after a solve).
+        self._live: weakref.WeakKeyDictionary[Session, LiveRecording] = weakref.WeakKeyDictionary()
+        self._last: weakref.WeakKeyDictionary[Session, LiveRecording] = weakref.WeakKeyDictionary()
+        # Closing a recording waits for its writer (drain, fsync): never on the play thread.
+        self._finisher = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinetix-rec")
+        if enabled:
+            self.recent.mkdir(parents=True, exist_ok=True)
+
+    # ------------------------------------------------------------------ start-up and retention
+
+    def clean_up(self) -> list[Path]:
+        """Remove partial files of a killed server (older than an hour, so another live server's are kept) and
+        recent/ files older than RECENT_KEEP_S. Returns what was removed."""
+        removed = remove_partial_files(self.directory) + remove_partial_files(self.recent)
+        return removed + self._sweep_recent()
+
+    def _sweep_recent(self) -> list[Path]:
+        removed = []
+        with self._lock:
+            keep = {r.path for r in self._live.values()}
+            keep |= {r.done.result().path for r in self._last.values() if r.done.done()}
+        now = time.time()
+        for path in self.recent.glob("*.mcap"):
+            try:
+                if path not in keep and now - path.stat().st_mtime > RECENT_KEEP_S:
+                    path.unlink()
+                    removed.append(path)
+            except FileNotFoundError:
+                pass
+        return removed
+
+    # ------------------------------------------------------------------ PlayListener
+
+    def play_started(self, session: Session, level_file, params) -> None:
+        if not self.enabled:
+            return
+        stepper = session._play[0]
+        metadata = {"player": session.player, "name": getattr(session.editor.spec, "name", "") or "",
+                    "level_id": session.gallery_id or "", "seed": 0, "source": "browser"}
+        path = self.recent / f"play-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(4)}.mcap"
+        live = LiveRecording(path, level_file, metadata, stepper.env.config, params,
+                             float(params.sim.dt) * stepper.frame_skip)
+        try:
+            self._finisher.submit(live.open_file)  # the same one thread closes it later, so always after this
+        except RuntimeError:  # shutting down
+            return
+        with self._lock:
+            previous = self._live.pop(session, None)
+            self._live[session] = live
+        if previous is not None:  # not ended (cannot happen through Session, which ends a play before the next)
+            self._finish(session, previous, "stopped", previous.count)
+
+    def play_stepped(self, session: Session, action: np.ndarray, state, result) -> None:
+        with self._lock:
+            live = self._live.get(session)
+        if live is not None:
+            live.add_step(action, state, result)
+
+    def frame_pushed(self, session: Session, jpeg: bytes, frame: np.ndarray) -> None:
+        with self._lock:
+            live = self._live.get(session)
+        if live is not None:
+            live.add_frame(jpeg)
+
+    def play_ended(self, session: Session, result: str, steps: int, seconds: float) -> None:
+        with self._lock:
+            live = self._live.pop(session, None)
+        if live is not None:
+            self._finish(session, live, result, steps)
+
+    def session_closed(self, session: Session) -> None:
+        with self._lock:
+            live = self._live.pop(session, None)
+        if live is not None:  # Session.close ends a running play first; this is a safety net
+            self._finish(session, live, "stopped", live.count)
+
+    # ------------------------------------------------------------------ finishing
+
+    def _finish(self, session: Session, live: LiveRecording, result: str, steps: int) -> None:
+        live.stop_adding()
+        with self._lock:
+            previous = self._last.get(session)
+            self._last[session] = live
+        try:
+            self._finisher.submit(self._close, live, previous, result, steps)
+        except RuntimeError:  # the server is shutting down (the finisher is closed): finish here
+            self._close(live, previous, result, steps)
+
+    def _close(self, live: LiveRecording, previous: LiveRecording | None, result: str, steps: int) -> None:
+        path = None
+        live.steps, live.frames = [], []  # only a running play's download needs them; _last keeps this object
+        try:
+            if live.recorder is not None:  # None: it could not be opened (logged)
+                path = live.recorder.close()
+        except (RecordingError, OSError) as error:
+            log.warning("recording %s not finished: %s", live.path.name, error)
+        except Exception:  # a bug must not leave `done` unresolved (the gallery and downloads wait on it)
+            log.exception("recording %s not finished", live.path.name)
+        meta = live.metadata
+        live.done.set_result(Finished(path, meta["player"], meta["level_id"] or None, result, steps,
+                                      steps * live.tick))
+        if previous is not None and previous.done.done():
+            old = previous.done.result().path
+            if old is not None and old != path:
+                old.unlink(missing_ok=True)  # recent/ keeps each tab's last play only
+        try:
+            self._sweep_recent()
+        except OSError:
+            log.debug("sweeping recent recordings failed", exc_info=True)
+
+    def close(self) -> None:
+        """Finish every recording still open (server shutdown)."""
+        with self._lock:
+            live = list(self._live.values())
+            self._live.clear()
+        for recording in live:
+            recording.stop_adding()
+            self._finisher.submit(self._close, recording, None, "stopped", recording.count)
+        self._finisher.shutdown(wait=True)
+
+    # ------------------------------------------------------------------ for the tab's panel and the gallery
+
+    def last_finished(self, session: Session, timeout: float = FINISH_TIMEOUT_S) -> Finished | None:
+        """The session's last ended play once its file is finished (waits for it), or None if it has none."""
+        with self._lock:
+            live = self._last.get(session)
+        if live is None:
+            return None
+        try:
+            return live.done.result(timeout=timeout)
+        except concurrent.futures.TimeoutError:
+            return None
+
+    def download(self, session: Session) -> tuple[str, bytes] | None:
+        """(file name, bytes) of the session's current play (the steps so far) or else its last play."""
+        with self._lock:
+            live = self._live.get(session)
+        if live is not None and live.count:
+            return f"kinetix-play-{live.count}-steps-so-far.mcap", live.snapshot()
+        finished = self.last_finished(session)
+        if finished is None:
+            return None
+        if finished.path is None:
+            raise RecordingError("the last play could not be recorded (see the server log)")
+        try:
+            return f"kinetix-play-{finished.result}-{finished.steps}-steps.mcap", finished.path.read_bytes()
+        except FileNotFoundError:  # swept meanwhile
+            return None

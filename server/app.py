@@ -40,6 +40,12 @@ class Config:
     gallery: bool = True  # include the gallery router when server.gallery is installed
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
+    agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
+    warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
+    max_training_runs: int = 1  # training worker processes at once; more runs queue
+    train_steps: int = 100_000  # the default of a tab's "Training steps"
+    train_options: dict = dataclasses.field(default_factory=dict)  # e.g. {"config": {"num_envs": 8}} (tests)
+    train_worker: object = None  # the training worker function (tests swap in a cheap one); default train_worker
 
 
 class App:
@@ -53,6 +59,8 @@ class App:
         self._thread: threading.Thread | None = None
         self._socket: socket.socket | None = None
         self.store = None  # the gallery Store, once started with the gallery on
+        self.training = None  # the TrainingPool, with agents on
+        self.agents = None  # the AgentLink, with agents on
 
     @property
     def port(self) -> int:
@@ -107,6 +115,7 @@ class App:
                                       editor_factory=self.config.editor_factory,
                                       initial_level=self._initial_level())
         app = create_app(self.manager, self.viser.get_port(), gallery_router=self._gallery_router())
+        self._attach_agents()
         config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
         self._uvicorn = uvicorn.Server(config)
         self._uvicorn.install_signal_handlers = lambda: None  # the main thread handles Ctrl+C
@@ -141,11 +150,32 @@ class App:
         GalleryLink(self.store).attach(self.manager)
         return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
 
+    def _attach_agents(self) -> None:
+        """The Agent folder in every tab (after the gallery's hooks, so `?level=..&mode=agent` opens first)."""
+        if not self.config.agents:
+            return
+        from server.agent_tab import AgentLink
+        from server.training import TrainingPool, train_worker
+
+        if self.config.max_training_runs < 1:
+            raise ValueError(f"--max-training-runs must be at least 1, got {self.config.max_training_runs}")
+        self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker)
+        data_dir = Path(self.config.data) if self.config.data else default_data_dir()
+        self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,
+                                train_steps=self.config.train_steps, train_options=self.config.train_options)
+        self.agents.attach(self.manager)
+        if self.config.warm_agent and self.config.warm_sizes:
+            from server.agent_play import warm_in_background
+
+            warm_in_background(self.config.warm_sizes)
+
     def stop(self) -> None:
         from server import play
 
         if self.manager is not None:
             self.manager.close_all()
+        if self.training is not None:
+            self.training.close()
         if not play.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
             log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
@@ -169,6 +199,7 @@ def serve(args) -> int:
     logging.getLogger("websockets").setLevel(logging.WARNING)
     config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
                     db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
+                    max_training_runs=getattr(args, "max_training_runs", 1),
                     warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:

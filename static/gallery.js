@@ -46,6 +46,7 @@ function card(level) {
   q(".score").textContent = String(level.stats.score);
   q(".play").href = `/?level=${id}&mode=play`;
   q(".edit").href = `/?level=${id}`;
+  q(".watch").href = `/?level=${id}&mode=agent`;
   const mine = myVotes()[level.id] || 0;
   q(".up").classList.toggle("mine", mine === 1);
   q(".down").classList.toggle("mine", mine === -1);

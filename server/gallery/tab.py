@@ -5,8 +5,8 @@
   listing the newest levels), plus a link to the /gallery page;
 - `/?level=<id>` opens that level in the tab (`&mode=play` starts playing it); the page's query reaches Python
   through the /keys hello;
-- every finished play of a level that is in the gallery is recorded as a human play (solved, steps, seconds of
-  simulated time, so pauses and a slow machine do not change a player's time).
+- every finished play of a level that is in the gallery is recorded (solved, steps, seconds of simulated time, so
+  pauses and a slow machine do not change a player's time), as kind "agent" when an agent played it.
 
 A save made while editing a gallery level is a remix: it keeps that level as its parent. The author token comes
 from the browser's localStorage (sent with the /keys hello); a save that issues a new token hands it back to the
@@ -137,8 +137,12 @@ class GalleryLink:
     def record_play(self, session, result: str, steps: int, seconds: float) -> None:
         if session.gallery_id is None:  # an unsaved level has no gallery entry to count the play against
             return
+        player = session.player  # "human", "agent:<name>" (Watch agent) or e.g. "race" (records its own plays)
+        kind = "human" if player == "human" else "agent" if player.startswith("agent") else None
+        if kind is None:
+            return
         try:
-            self.store.record_play(session.gallery_id, "human", solved=result == "solved", steps=int(steps),
+            self.store.record_play(session.gallery_id, kind, solved=result == "solved", steps=int(steps),
                                    seconds=float(seconds))
         except StoreError as error:  # e.g. the level was deleted meanwhile; a lost statistic is not worth a crash
             log.warning("play not recorded for %s: %s", session.gallery_id, error)

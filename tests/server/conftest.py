@@ -18,7 +18,8 @@ def running_app(**config):
     from server.app import App, Config
 
     # No background compiles of batched steps: tests that need them ask for them (test_play_batch.py).
-    app = App(Config(**{"port": 0, "gallery": False, "warm_batches": False, **config})).start()
+    # Nor of the general agent: tests that watch it compile it on first use.
+    app = App(Config(**{"port": 0, "gallery": False, "warm_batches": False, "warm_agent": False, **config})).start()
     try:
         yield app
     finally:

@@ -56,7 +56,6 @@ class AgentLink:
         self.pool = pool
         self.train_steps = train_steps
         self.train_options = train_options or {}
-        self._tabs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # session -> TabAgents
         self._lock = threading.Lock()
 
     def attach(self, manager) -> None:
@@ -76,10 +75,12 @@ class AgentLink:
         manager.on_query = on_query
 
     def tab(self, session) -> TabAgents:
+        # Kept on the session itself, not in a dict keyed by it: its GUI callbacks refer to the session, so a
+        # WeakKeyDictionary value would keep its key alive for ever.
         with self._lock:
-            tab = self._tabs.get(session)
+            tab = getattr(session, "agent_tab", None)
             if tab is None:
-                tab = self._tabs[session] = TabAgents()
+                tab = session.agent_tab = TabAgents()
             return tab
 
     # ------------------------------------------------------------------ GUI

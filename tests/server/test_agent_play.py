@@ -246,3 +246,16 @@ def test_a_tiny_real_training_attaches_a_specialist_that_watch_agent_plays(app, 
         _wait(lambda: app.store.stats(level_id)["agent_plays"] == 1)
     finally:
         pool.close()
+
+
+def test_warm_up_compiles_the_agent_function_for_each_size_class_once():
+    from server import agent_play
+
+    before = {k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")}
+    agent_play.warm_in_background(("s",), spec="noop").join(timeout=300)
+    warmed = {k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")}
+    assert any(k[1] == "s" for k in warmed)
+    runner = AgentRunner("noop", build(falling_win_spec()).size)  # another runner of the same agent and size ...
+    agent_play.warm_in_background(("m",), spec="noop").join(timeout=300)
+    assert runner._fn is agent_play.step_fn(runner.policy, build(falling_win_spec()).size)  # ... shares its function
+    assert len({k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")} - before) <= 2

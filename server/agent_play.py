@@ -108,12 +108,26 @@ class AgentRunner:
         self.action: np.ndarray | None = None
         self.value: float | None = None
         self.step_seconds: deque[float] = deque(maxlen=1000)  # wall time of recent act calls (benchmarks)
+        self._pending: tuple | None = None  # (state, its action and value being computed) from prefetch
+
+    def prefetch(self, state) -> None:
+        """Start computing the action for `state` now; `act(state)` collects it.
+
+        JAX dispatches the jitted call asynchronously, so the agent thinks while the play thread draws and sends
+        the frame of `state`, and the next tick only waits for what is left of it.
+        """
+        self._pending = (state, self._fn(self.policy.params, self._key, self._step, state))
 
     def act(self, state) -> np.ndarray:
         import jax
 
         t0 = time.perf_counter()
-        action, value = jax.device_get(self._fn(self.policy.params, self._key, self._step, state))
+        pending, self._pending = self._pending, None
+        if pending is not None and pending[0] is state:
+            out = pending[1]
+        else:
+            out = self._fn(self.policy.params, self._key, self._step, state)
+        action, value = jax.device_get(out)
         self._step += 1
         self.action = np.asarray(action, np.int32).reshape(-1)
         self.value = float(value)
@@ -169,6 +183,12 @@ class AgentController(Controller):
 
     def act(self, state, params) -> np.ndarray:
         return self.runner.act(state)
+
+    def episode_end(self, state, result) -> str | None:
+        end = super().episode_end(state, result)
+        if end is None:
+            self.runner.prefetch(state)  # the next action is computed while this frame is drawn
+        return end
 
     def hud(self) -> str:
         return self.runner.describe()
@@ -229,6 +249,8 @@ class RaceController(Controller):
             self.agent.state, result = self.stepper.step(self.agent.state, action, params)
             self.agent.steps, self.agent.seconds = result.timestep, result.timestep * self.tick
             self.agent.result = episode_end(result)
+            if self.agent.result is None:
+                self.runner.prefetch(self.agent.state)
         if self.human.result is not None:  # the human's episode ended: its side stays as it was
             return np.zeros(6, np.int32)
         return action_from_keys(self.session.held)

@@ -48,7 +48,8 @@ def step_cost(agent: str, size_name: str, calls: int = 300) -> dict:
             "p50_ms": statistics.median(ms), "p90_ms": ms[int(0.9 * len(ms))], "mean_ms": statistics.fmean(ms)}
 
 
-def watch_fps(agent: str, size_name: str, seconds: float) -> dict:
+def watch_fps(agent: str | None, size_name: str, seconds: float) -> dict:
+    """Frames per second of a tab watching `agent` (None: a human play with no keys, for comparison)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
     from viser_client import ViserTestClient, session_nonce
 
@@ -66,19 +67,21 @@ def watch_fps(agent: str, size_name: str, seconds: float) -> dict:
         from kinetix.levels import to_document
 
         session.open_level(json.dumps(to_document(level_of_size(size_name))).encode(), "bench.json")
-        app.agents.watch(session, agent)
+        start = (lambda: app.agents.watch(session, agent)) if agent else session.play
+        start()
         time.sleep(2.0)  # past the first frames
         sent0, got0, t0 = session.frames_sent, len(client.frames()), time.perf_counter()
         restarts = 0
         while time.perf_counter() - t0 < seconds:
             if session.mode == "ended":  # keep it playing for the whole measurement
-                app.agents.watch(session, agent)
+                start()
                 restarts += 1
             time.sleep(0.05)
         elapsed = time.perf_counter() - t0
         sent, got = session.frames_sent - sent0, len(client.frames()) - got0
         client.close()
-        return {"size": size_name, "sent_fps": sent / elapsed, "received_fps": got / elapsed, "restarts": restarts}
+        return {"size": size_name, "agent": agent, "sent_fps": sent / elapsed, "received_fps": got / elapsed,
+                "restarts": restarts}
     finally:
         app.stop()
 
@@ -94,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         print("agent step", step_cost(args.agent, size), flush=True)
     for size in sizes:
         print("watch agent", watch_fps(args.agent, size, args.seconds), flush=True)
+        print("human play (no keys), same conditions", watch_fps(None, size, args.seconds), flush=True)
     return 0
 
 

@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 GENERAL = "general"
 NEWEST = "newest specialist"
 DEFAULT_TRAIN_STEPS = 100_000
+MAX_TRAIN_STEPS = 10_000_000  # a tab cannot start a run of days by a typo
 CURVE_SIZE = (300, 130)
 
 
@@ -92,7 +93,8 @@ class AgentLink:
             tab.choice = gui.add_dropdown("Agent", options=(GENERAL, NEWEST), initial_value=GENERAL)
             watch = gui.add_button("Watch agent")
             race = gui.add_button("Race the agent")
-            tab.steps = gui.add_number("Training steps", initial_value=self.train_steps, min=1000, step=1000)
+            tab.steps = gui.add_number("Training steps", initial_value=self.train_steps, min=1000, max=MAX_TRAIN_STEPS,
+                                       step=1000)
             train = gui.add_button("Train on this level", disabled=self.pool is None)
             tab.cancel = gui.add_button("Cancel training", disabled=True)
             tab.bar = gui.add_progress_bar(0.0, visible=False)
@@ -223,8 +225,8 @@ class AgentLink:
             raise ValueError("this tab is already training; cancel it first")
         document = json.loads(session.editor.export("ours"))
         steps = int(steps if steps is not None else (tab.steps.value if tab.steps is not None else self.train_steps))
-        if steps < 1:
-            raise ValueError("training steps must be positive")
+        if not 1 <= steps <= MAX_TRAIN_STEPS:
+            raise ValueError(f"training steps must be between 1 and {MAX_TRAIN_STEPS:,}, got {steps:,}")
         target = self._attach_target(session, document)
         run_name = f"{target or 'tab'}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
         run_dir = self.agents_dir / run_name

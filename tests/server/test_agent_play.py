@@ -259,3 +259,22 @@ def test_warm_up_compiles_the_agent_function_for_each_size_class_once():
     agent_play.warm_in_background(("m",), spec="noop").join(timeout=300)
     assert runner._fn is agent_play.step_fn(runner.policy, build(falling_win_spec()).size)  # ... shares its function
     assert len({k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")} - before) <= 2
+
+
+def test_the_gallery_cards_watch_agent_link_opens_agent_mode():
+    from pathlib import Path
+
+    static = Path(__file__).resolve().parents[2] / "static"
+    card = (static / "gallery.html").read_text()
+    watch = next(line for line in card.splitlines() if "watch" in line)
+    assert "<a " in watch and "disabled" not in watch
+    assert '.watch").href = `/?level=${id}&mode=agent`' in (static / "gallery.js").read_text()
+
+
+def test_training_refuses_bad_step_counts(app, make_client):
+    client = make_client(app)
+    session, _ = _session(app, client)
+    for steps in (0, 10**9):
+        with pytest.raises(ValueError, match="training steps must be between"):
+            app.agents.train(session, steps=steps)
+    assert app.agents.tab(session).job is None

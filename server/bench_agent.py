@@ -67,7 +67,15 @@ def watch_fps(agent: str | None, size_name: str, seconds: float) -> dict:
         from kinetix.levels import to_document
 
         session.open_level(json.dumps(to_document(level_of_size(size_name))).encode(), "bench.json")
-        start = (lambda: app.agents.watch(session, agent)) if agent else session.play
+        waits: list[float] = []  # seconds the play thread waited for the agent per step (with prefetch)
+
+        def start() -> None:
+            if agent:
+                waits.extend(session.controller.runner.step_seconds if session.controller is not None else ())
+                app.agents.watch(session, agent)
+            else:
+                session.play()
+
         start()
         time.sleep(2.0)  # past the first frames
         sent0, got0, t0 = session.frames_sent, len(client.frames()), time.perf_counter()
@@ -79,9 +87,13 @@ def watch_fps(agent: str | None, size_name: str, seconds: float) -> dict:
             time.sleep(0.05)
         elapsed = time.perf_counter() - t0
         sent, got = session.frames_sent - sent0, len(client.frames()) - got0
+        if agent and session.controller is not None:
+            waits.extend(session.controller.runner.step_seconds)
+        wait_ms = sorted(1000 * w for w in waits)
         client.close()
         return {"size": size_name, "agent": agent, "sent_fps": sent / elapsed, "received_fps": got / elapsed,
-                "restarts": restarts}
+                "restarts": restarts, "agent_wait_ms_p50": wait_ms[len(wait_ms) // 2] if wait_ms else None,
+                "agent_wait_ms_p90": wait_ms[int(0.9 * len(wait_ms))] if wait_ms else None}
     finally:
         app.stop()
 

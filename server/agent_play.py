@@ -275,7 +275,7 @@ class RaceController(Controller):
         return f"race vs {self.runner.label}  agent: {self.runner.describe()}"
 
     def draw(self, session, view: draw.View, banner: str) -> np.ndarray:
-        half = draw.View(max(view.width // 2 - 1, 32), view.height)
+        half = draw.View(max(view.width // 2 - 2, 32), view.height)  # a 4-pixel divider between the halves
         halves = []
         for side, label in ((self.human, "YOU"), (self.agent, f"AGENT {self.runner.label}"[:24])):
             state = side.state if side is self.agent or side.result is not None else session._play[1]

@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 
 GENERAL = "general"
 NEWEST = "newest specialist"
+BEST = "best: newest specialist, else general"
 DEFAULT_TRAIN_STEPS = 100_000
 MAX_TRAIN_STEPS = 10_000_000  # a tab cannot start a run of days by a typo
 CURVE_SIZE = (300, 130)
@@ -90,7 +91,7 @@ class AgentLink:
         gui = session.client.gui
         tab = self.tab(session)
         with gui.add_folder("Agent"):
-            tab.choice = gui.add_dropdown("Agent", options=(GENERAL, NEWEST), initial_value=GENERAL)
+            tab.choice = gui.add_dropdown("Agent", options=(BEST, GENERAL, NEWEST), initial_value=BEST)
             watch = gui.add_button("Watch agent")
             race = gui.add_button("Race the agent")
             tab.steps = gui.add_number("Training steps", initial_value=self.train_steps, min=1000, max=MAX_TRAIN_STEPS,
@@ -124,7 +125,7 @@ class AgentLink:
         tab = self.tab(session)
         if tab.choice is None or session.closed:
             return
-        labels = [GENERAL, NEWEST] + [label for label, _ in self.specialists(session)]
+        labels = [BEST, GENERAL, NEWEST] + [label for label, _ in self.specialists(session)]
         current = tab.choice.value
         tab.choice.options = tuple(dict.fromkeys(labels))
         if current in labels:
@@ -144,11 +145,14 @@ class AgentLink:
         return out
 
     def resolve(self, session, choice: str | None) -> tuple[str, str]:
-        """(label, load_policy spec) for a dropdown label, "general", "noop", "random" or "newest specialist"."""
-        choice = choice or (self.tab(session).choice.value if self.tab(session).choice is not None else GENERAL)
+        """(label, load_policy spec) for a dropdown label, "general", "noop", "random", "newest specialist" or
+        "best" (the newest specialist if the level has one, else general)."""
+        choice = choice or (self.tab(session).choice.value if self.tab(session).choice is not None else BEST)
         if choice in (GENERAL, "noop", "random"):
             return choice, choice
         specialists = self.specialists(session)
+        if choice in (BEST, "best"):
+            return specialists[0] if specialists else (GENERAL, GENERAL)
         if choice == NEWEST:
             if not specialists:
                 raise ValueError("this level has no specialist yet: train one (Train on this level)")
@@ -189,8 +193,9 @@ class AgentLink:
 
     def _race_finished(self, race: RaceController) -> None:
         session = race.session
-        self._say(session, f"**{WINNER_TEXT[race.winner]}** You: {race.human.result}, {race.human.seconds:.2f} s; "
-                           f"agent: {race.agent.result or 'still playing'}, {race.agent.seconds:.2f} s.")
+        self._say(session, f"**{WINNER_TEXT[race.winner]}** You: {race.human.result or 'still playing'}, "
+                           f"{race.human.seconds:.2f} s; agent: {race.agent.result or 'still playing'}, "
+                           f"{race.agent.seconds:.2f} s.")
         if self.store is None or race.gallery_id is None:
             return
         # Both plays are recorded; a side still playing when the other solved lost the race: recorded unsolved,
@@ -212,7 +217,7 @@ class AgentLink:
         if params.get("level") and session.gallery_id is None:  # the gallery could not open it (and said so)
             return
         self.refresh_choices(session)
-        self._guarded(session, self.watch, session, (params.get("agent") or [GENERAL])[0])
+        self._guarded(session, self.watch, session, (params.get("agent") or [BEST])[0])
 
     # ------------------------------------------------------------------ training
 
@@ -235,7 +240,7 @@ class AgentLink:
         session_ref = weakref.ref(session)
         job = self.pool.submit(run_dir / "level.json", run_dir, steps=steps,
                                options={**self.train_options, **(options or {})},
-                               on_update=lambda job: self._show_progress(session_ref(), job),
+                               on_update=lambda job: self._show_progress(session_ref(), job, target),
                                on_done=lambda job: self._training_done(session_ref(), job, target, run_name))
         tab.job = job
         if tab.cancel is not None:
@@ -259,8 +264,10 @@ class AgentLink:
         if tab.job is not None and not tab.job.finished and self.pool is not None:
             self.pool.cancel(tab.job)
 
-    def _show_progress(self, session, job: TrainingJob) -> None:
+    def _show_progress(self, session, job: TrainingJob, target: str | None = None) -> None:
         if session is None or session.closed:
+            if target is None and self.pool is not None:  # nobody can use a closed tab's specialist of its own
+                self.pool.cancel(job)
             return
         tab = self.tab(session)
         if tab.job is not job:

@@ -19,7 +19,7 @@ from kinetix.agents.policy import Policy
 from kinetix.formats import ThrusterSpec, build
 from kinetix.levels import to_document
 from server.agent_play import AgentRunner, _overlay_box, action_text
-from server.agent_tab import NEWEST, AgentLink
+from server.agent_tab import BEST, NEWEST, AgentLink
 from server.gallery.tab import GalleryLink
 from tests.server.conftest import running_app
 
@@ -189,6 +189,8 @@ def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app,
     rows = app.agents.level_agents.list(level_id)
     assert len(rows) == 1 and rows[0]["solve_rate"] == 0.75 and rows[0]["path"].is_dir()
     assert app.agents.resolve(first, NEWEST)[1] == str(rows[0]["path"])
+    assert app.agents.resolve(first, BEST)[1] == str(rows[0]["path"]), "the default prefers the level's specialist"
+    assert app.agents.resolve(second, BEST) == ("general", "general"), "... and falls back to the general agent"
     _wait(lambda: "Training done" in _status(first_client))
     # The second run started once the first finished; it finishes at once (the release file exists) and stays
     # with its tab, since its level is not in the gallery.
@@ -278,3 +280,22 @@ def test_training_refuses_bad_step_counts(app, make_client):
         with pytest.raises(ValueError, match="training steps must be between"):
             app.agents.train(session, steps=steps)
     assert app.agents.tab(session).job is None
+
+
+def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tmp_path):
+    FAKE_TRAINING["release"] = str(tmp_path / "release")
+    level_id, _ = app.store.create_level("keeps training", to_document(build(falling_win_spec())))
+    keeper, leaver = make_client(app), make_client(app)
+    kept, _ = _session(app, keeper)
+    left, _ = _session(app, leaver)
+    GalleryLink(app.store).open(kept, level_id)
+    kept_job = app.agents.train(kept, steps=4000)
+    left_job = app.agents.train(left, steps=4000)  # unsaved level, queued behind the first
+    assert left_job.state == "queued"
+    leaver.close()
+    _wait(lambda: left.closed)
+    (tmp_path / "release").touch()
+    _wait(lambda: kept_job.finished and left_job.finished)
+    assert kept_job.state == "done", "a gallery level's run goes on: its specialist is attached for everyone"
+    assert left_job.state == "cancelled" and not left_job.out_dir.exists()
+    assert len(app.agents.level_agents.list(level_id)) == 1

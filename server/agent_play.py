@@ -110,6 +110,13 @@ class AgentRunner:
         self.step_seconds: deque[float] = deque(maxlen=1000)  # wall time of recent act calls (benchmarks)
         self._pending: tuple | None = None  # (state, its action and value being computed) from prefetch
 
+    def warm(self, state) -> None:
+        """Compile (if needed) and run the agent once on `state`, here and now: called before a play starts, so a
+        compile never stalls the play thread (which steps every tab)."""
+        import jax
+
+        jax.block_until_ready(self._fn(self.policy.params, self._key, self._step, state))
+
     def prefetch(self, state) -> None:
         """Start computing the action for `state` now; `act(state)` collects it.
 
@@ -151,8 +158,9 @@ def action_text(action: np.ndarray) -> str:
     return f"{motors} {thrusters}"
 
 
-def _overlay_box(frame: np.ndarray, runner: AgentRunner, title: str) -> np.ndarray:
-    """Draw the agent's action per binding (in the bindings' colours) and its value estimate, bottom right."""
+def _overlay_box(frame: np.ndarray, runner: AgentRunner, title: str, view: draw.View | None = None) -> np.ndarray:
+    """Draw the agent's action per binding (in the bindings' colours) and its value estimate at the bottom left of
+    the level's area (the browser's control panel covers the canvas's right side)."""
     if runner.action is None or runner.action.shape[0] != 6:
         return frame
     image = Image.fromarray(frame)
@@ -164,8 +172,9 @@ def _overlay_box(frame: np.ndarray, runner: AgentRunner, title: str) -> np.ndarr
              for b in range(2)]
     rows.append((f"value {runner.value:+.3f}", (20, 20, 20)))
     width, height = 132, 14 * len(rows) + 8
-    x0, y0 = image.width - width - 6, image.height - height - 6
-    if x0 < 0 or y0 < 0:
+    ox, oy = view.origin if view is not None else (0.0, 0.0)
+    x0, y0 = int(ox) + 6, int(image.height - oy) - height - 6
+    if x0 + width > image.width or y0 < 0:
         return frame
     pen.rectangle([x0, y0, x0 + width, y0 + height], fill=(255, 255, 255), outline=(60, 60, 60))
     for n, (text, colour) in enumerate(rows):
@@ -198,7 +207,7 @@ class AgentController(Controller):
         self._scene = draw.scene_of(state.level, static_from=self._scene)
         banner = banner.replace("You won!", "The agent solved it!").replace("You lost.", "The agent failed.")
         frame = draw.draw_frame(self._scene, view, hud=session.hud(), banner=banner)
-        return _overlay_box(frame, self.runner, f"agent {self.runner.label}"[:20])
+        return _overlay_box(frame, self.runner, f"agent {self.runner.label}"[:20], view)
 
 
 @dataclasses.dataclass
@@ -285,7 +294,7 @@ class RaceController(Controller):
             end = "" if side.result is None else f"{draw_result(side.result)}\n{side.seconds:.2f} s"
             frame = draw.draw_frame(side.scene, half, hud=text, banner=end, legend=side is self.human)
             if side is self.agent:
-                frame = _overlay_box(frame, self.runner, "agent")
+                frame = _overlay_box(frame, self.runner, "agent", half)
             halves.append(frame)
         divider = np.full((view.height, view.width - 2 * half.width, 3), 60, np.uint8)
         frame = np.concatenate([halves[0], divider, halves[1]], axis=1)

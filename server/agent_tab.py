@@ -163,10 +163,15 @@ class AgentLink:
         raise ValueError(f"no agent {choice!r} for this level")
 
     def runner(self, session, choice: str | None = None, policy=None) -> AgentRunner:
+        from server.play import stepper_for
+
         label, spec = self.resolve(session, choice) if policy is None else (policy.name, policy.name)
         level_file = session.editor.level_file()
-        return AgentRunner(spec, level_file.size, label=label.split(" (#")[0], policy=policy,
-                           seed=secrets.randbits(31))
+        self._say(session, f"Preparing **{html.escape(label)}** (the first time for a size class compiles it)...")
+        runner = AgentRunner(spec, level_file.size, label=label.split(" (#")[0], policy=policy,
+                             seed=secrets.randbits(31))
+        runner.warm(stepper_for(level_file).start(level_file)[0])  # here, not on the play thread
+        return runner
 
     # ------------------------------------------------------------------ watch and race
 

@@ -158,9 +158,11 @@ def action_text(action: np.ndarray) -> str:
     return f"{motors} {thrusters}"
 
 
-def _overlay_box(frame: np.ndarray, runner: AgentRunner, title: str, view: draw.View | None = None) -> np.ndarray:
-    """Draw the agent's action per binding (in the bindings' colours) and its value estimate at the bottom left of
-    the level's area (the browser's control panel covers the canvas's right side)."""
+def _overlay_box(frame: np.ndarray, runner: AgentRunner, title: str, view: draw.View | None = None,
+                 left: int = 6) -> np.ndarray:
+    """Draw the agent's action per binding (in the bindings' colours) and its value estimate near the top of the
+    level's area, `left` pixels in (past the key legend), where levels are mostly sky; not on the right, which the
+    browser's control panel covers."""
     if runner.action is None or runner.action.shape[0] != 6:
         return frame
     image = Image.fromarray(frame)
@@ -171,14 +173,17 @@ def _overlay_box(frame: np.ndarray, runner: AgentRunner, title: str, view: draw.
     rows += [(f"thruster {b}: {'on' if runner.action[4 + b] else 'off'}", draw.THRUSTER_COLOURS[b])
              for b in range(2)]
     rows.append((f"value {runner.value:+.3f}", (20, 20, 20)))
-    width, height = 132, 14 * len(rows) + 8
+    width, height = 140, 14 * len(rows) + 8
     ox, oy = view.origin if view is not None else (0.0, 0.0)
-    x0, y0 = int(ox) + 6, int(image.height - oy) - height - 6
-    if x0 + width > image.width or y0 < 0:
+    x0, y0 = int(ox) + left, int(oy) + 22  # under the HUD line
+    if x0 + width > image.width or y0 + height > image.height:
         return frame
     pen.rectangle([x0, y0, x0 + width, y0 + height], fill=(255, 255, 255), outline=(60, 60, 60))
-    for n, (text, colour) in enumerate(rows):
-        pen.text((x0 + 6, y0 + 4 + 14 * n), text, fill=tuple(int(c) for c in colour), font=font)
+    for n, (text, colour) in enumerate(rows):  # a swatch in the binding's colour, dark text (yellow is unreadable)
+        y = y0 + 4 + 14 * n
+        if n not in (0, len(rows) - 1):
+            pen.rectangle([x0 + 6, y + 2, x0 + 15, y + 11], fill=tuple(int(c) for c in colour), outline=(60, 60, 60))
+        pen.text((x0 + 20, y), text, fill=(20, 20, 20), font=font)
     return np.asarray(image)
 
 
@@ -207,7 +212,7 @@ class AgentController(Controller):
         self._scene = draw.scene_of(state.level, static_from=self._scene)
         banner = banner.replace("You won!", "The agent solved it!").replace("You lost.", "The agent failed.")
         frame = draw.draw_frame(self._scene, view, hud=session.hud(), banner=banner)
-        return _overlay_box(frame, self.runner, f"agent {self.runner.label}"[:20], view)
+        return _overlay_box(frame, self.runner, f"agent {self.runner.label}"[:20], view, left=190)
 
 
 @dataclasses.dataclass

@@ -91,3 +91,19 @@ def test_bad_arguments_are_refused():
     pool.close()
     with pytest.raises(RuntimeError, match="shut down"):
         pool.submit("level.json", "out", steps=10)
+
+
+def test_the_real_worker_reports_a_bad_level_as_a_clear_failure(tmp_path):
+    from server.training import train_worker
+
+    bad = tmp_path / "level.json"
+    bad.write_text("{not json")
+    pool = TrainingPool(max_running=1, worker=train_worker)
+    done = threading.Event()
+    try:
+        job = pool.submit(bad, tmp_path / "run", steps=1024, on_done=lambda job: done.set())
+        assert done.wait(180)
+        assert job.state == "failed"
+        assert "LevelError" in job.error and "level.json" in job.error, job.error
+    finally:
+        pool.close()

@@ -10,8 +10,8 @@
 Specialists. A run trained on a gallery level whose tab still shows that level unchanged is attached to it
 (gallery table `level_agents`, checkpoint under `<data dir>/agents/<run>/checkpoint`), so every tab that opens
 the level can watch it. A run trained on anything else (a new level, or a gallery level edited since it was
-opened) lives with the tab: it is offered there until the tab closes, then its files are deleted. Save the
-level to the gallery first to keep a specialist.
+opened) lives with the tab: it is offered there until the tab closes, then its files are deleted, unless the
+tab's level is saved to the gallery meanwhile (then it is attached to the saved level).
 
 Plays: Watch agent plays are recorded by the gallery link (kind "agent", the session's player is
 "agent:<name>"). A race records both of its plays itself when it is decided (kind "human" and kind "agent").
@@ -19,6 +19,7 @@ Plays: Watch agent plays are recorded by the gallery link (kind "agent", the ses
 
 from __future__ import annotations
 
+import dataclasses
 import html
 import io
 import json
@@ -135,7 +136,9 @@ class AgentLink:
 
     def specialists(self, session) -> list[tuple[str, str]]:
         """(label, checkpoint dir) of the specialists for the tab's level, newest first."""
-        out = list(reversed(self.tab(session).local))
+        self._adopt_saved(session)
+        out = [(local.label, str(self.agents_dir / local.run_name / "checkpoint"))
+               for local in reversed(self.tab(session).local)]
         level_id = session.gallery_id
         if self.level_agents is not None and level_id is not None:
             try:
@@ -143,6 +146,30 @@ class AgentLink:
             except Exception:
                 log.exception("could not list the specialists of %s", level_id)
         return out
+
+    def _adopt_saved(self, session) -> None:
+        """The tab's own specialists whose level has since been saved to the gallery (unchanged) are attached to it
+        and kept for good."""
+        tab = self.tab(session)
+        if not tab.local or self.level_agents is None or session.gallery_id is None:
+            return
+        try:
+            stored = _without_name(self.store.get_level(session.gallery_id)["level"])
+        except Exception:
+            return
+        for local in list(tab.local):
+            try:
+                trained_on = json.loads((self.agents_dir / local.run_name / "level.json").read_text())
+                if _without_name(trained_on) != stored:
+                    continue
+                self.level_agents.attach(session.gallery_id, local.run_name, steps=local.steps,
+                                         solve_rate=local.solve_rate, mean_return=local.mean_return,
+                                         name=local.label.replace("this tab's ", ""))
+            except Exception as error:
+                log.warning("tab specialist %s not attached: %s", local.run_name, error)
+                continue
+            local.finalizer.detach()  # the gallery owns it now: keep the files when the tab closes
+            tab.local.remove(local)
 
     def resolve(self, session, choice: str | None) -> tuple[str, str]:
         """(label, load_policy spec) for a dropdown label, "general", "noop", "random", "newest specialist" or
@@ -261,8 +288,7 @@ class AgentLink:
             stored = self.store.get_level(session.gallery_id)["level"]
         except Exception:
             return None
-        strip = lambda doc: {k: v for k, v in doc.items() if k != "name"}  # noqa: E731  (the name is the gallery's)
-        return session.gallery_id if strip(stored) == strip(document) else None
+        return session.gallery_id if _without_name(stored) == _without_name(document) else None
 
     def cancel_training(self, session) -> None:
         tab = self.tab(session)
@@ -316,10 +342,12 @@ class AgentLink:
                 if session is None:  # the tab is gone and the run belongs to no gallery level
                     shutil.rmtree(run_dir, ignore_errors=True)
                     return
-                label = f"this tab's specialist {time.strftime('%H:%M:%S')}"
-                self.tab(session).local.append((label, str(run_dir / "checkpoint")))
-                weakref.finalize(session, shutil.rmtree, str(run_dir), True)  # it lives as long as the tab
-                attached = "kept with this tab (save the level to the gallery first to keep specialists)"
+                result = job.result or {}
+                self.tab(session).local.append(LocalSpecialist(
+                    f"this tab's specialist {time.strftime('%H:%M:%S')}", run_name, int(result.get("steps") or 0),
+                    result.get("solve_rate"), result.get("mean_return"),
+                    weakref.finalize(session, shutil.rmtree, str(run_dir), True)))  # lives as long as the tab
+                attached = "kept with this tab (save the level to the gallery to keep it)"
         if session is None or session.closed:
             return
         tab = self.tab(session)
@@ -346,7 +374,25 @@ class TabAgents:
     def __init__(self) -> None:
         self.choice = self.steps = self.cancel = self.bar = self.status = self.curve = None
         self.job: TrainingJob | None = None
-        self.local: list[tuple[str, str]] = []  # (label, checkpoint dir) trained on a level not in the gallery
+        self.local: list[LocalSpecialist] = []  # trained on a level not in the gallery (oldest first)
+
+
+@dataclasses.dataclass(eq=False)
+class LocalSpecialist:
+    """A specialist that lives with its tab: its run directory is deleted when the tab goes (`finalizer`),
+    unless the level is saved to the gallery meanwhile and it is attached there."""
+
+    label: str
+    run_name: str
+    steps: int
+    solve_rate: float | None
+    mean_return: float | None
+    finalizer: weakref.finalize
+
+
+def _without_name(document: dict) -> dict:
+    """A level document without its name (the gallery sets the name on save), for comparing levels."""
+    return {key: value for key, value in document.items() if key != "name"}
 
 
 def curve_image(progress: list[dict], size: tuple[int, int] = CURVE_SIZE) -> np.ndarray:

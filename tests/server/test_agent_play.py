@@ -198,6 +198,20 @@ def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app,
     assert second_job.state == "done"
     assert app.agents.specialists(second)[0][0].startswith("this tab's specialist")
     assert app.agents.level_agents.list(level_id) == rows
+    # Saving the second tab's level to the gallery attaches its specialist there for good.
+    run_dir = second_job.out_dir
+    saved_id = GalleryLink(app.store).save(second, "saved after training")
+    labels = [label for label, _ in app.agents.specialists(second)]
+    assert not any(label.startswith("this tab's") for label in labels)
+    adopted = app.agents.level_agents.list(saved_id)
+    assert len(adopted) == 1 and adopted[0]["path"] == run_dir / "checkpoint" and adopted[0]["solve_rate"] == 0.75
+    second_client.close()
+    _wait(lambda tab=second: tab.closed)
+    del second
+    import gc
+
+    gc.collect()
+    assert run_dir.is_dir(), "an adopted specialist outlives its tab"
 
 
 def test_cancel_training_from_the_tab(app, make_client, tmp_path):
@@ -299,3 +313,23 @@ def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tm
     assert kept_job.state == "done", "a gallery level's run goes on: its specialist is attached for everyone"
     assert left_job.state == "cancelled" and not left_job.out_dir.exists()
     assert len(app.agents.level_agents.list(level_id)) == 1
+
+
+def test_a_tab_specialist_is_deleted_with_its_tab(app, make_client, tmp_path):
+    import gc
+
+    FAKE_TRAINING["release"] = str(tmp_path / "release")
+    (tmp_path / "release").touch()
+    client = make_client(app)
+    session, _ = _session(app, client)
+    job = app.agents.train(session, steps=4000)
+    _wait(lambda: job.finished)
+    assert job.state == "done" and app.agents.specialists(session)[0][1] == str(job.out_dir / "checkpoint")
+    client.close()
+    _wait(lambda tab=session: tab.closed)
+    del session
+    deadline = time.monotonic() + 30
+    while job.out_dir.exists() and time.monotonic() < deadline:
+        gc.collect()
+        time.sleep(0.1)
+    assert not job.out_dir.exists(), "nothing outlives the tab that owned it"

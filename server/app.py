@@ -83,6 +83,8 @@ class App:
 
         if self.config.max_sessions < 1:
             raise ValueError(f"--max-sessions must be at least 1, got {self.config.max_sessions}")
+        if self.config.max_training_runs < 1:
+            raise ValueError(f"--max-training-runs must be at least 1, got {self.config.max_training_runs}")
         # Bind the user's port first so a busy port fails loudly (viser would silently take the next one).
         sock = socket.socket(socket.AF_INET6 if ":" in self.config.host else socket.AF_INET)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -164,8 +166,6 @@ class App:
         from server.agent_tab import AgentLink
         from server.training import TrainingPool, train_worker
 
-        if self.config.max_training_runs < 1:
-            raise ValueError(f"--max-training-runs must be at least 1, got {self.config.max_training_runs}")
         self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker)
         data_dir = Path(self.config.data) if self.config.data else default_data_dir()
         self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,

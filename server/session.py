@@ -198,6 +198,7 @@ class Session:
         self.author_token: str | None = None  # the tab's gallery author token (from localStorage, via /keys)
         self.gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
+        self.ended_player = "human"  # the player of the last play that ended (see _finish_step)
         self._build_gui()
         self._wire_pointer()
         self.refresh(force=True)
@@ -488,6 +489,7 @@ class Session:
                 self.held.clear()
                 self._set_buttons()
                 seconds = result.timestep * float(params.sim.dt) * stepper.frame_skip
+                self.ended_player = self.player  # who played it, for on_play_end (a new play may start meanwhile)
                 self.manager.notify("play_ended", self, self._result, result.timestep, seconds)
                 if self.manager.on_play_end is not None:  # e.g. the gallery's play statistics; off the play thread
                     threading.Thread(target=self.manager.on_play_end,

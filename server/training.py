@@ -71,6 +71,7 @@ class TrainingJob:
     result: dict | None = None  # the worker's "done" summary: steps, solve_rate, mean_return
     error: str | None = None
     process: object = None
+    settled: threading.Event = dataclasses.field(default_factory=threading.Event)  # set once on_done has run
     _cancel: threading.Event = dataclasses.field(default_factory=threading.Event)
 
     @property
@@ -237,8 +238,10 @@ class TrainingPool:
                 log.exception("training progress callback failed")
 
     def _finish(self, job: TrainingJob) -> None:
-        if job.on_done is not None:
-            try:
+        try:
+            if job.on_done is not None:
                 job.on_done(job)
-            except Exception:
-                log.exception("training completion callback failed")
+        except Exception:
+            log.exception("training completion callback failed")
+        finally:
+            job.settled.set()

@@ -137,7 +137,8 @@ class GalleryLink:
     def record_play(self, session, result: str, steps: int, seconds: float) -> None:
         if session.gallery_id is None:  # an unsaved level has no gallery entry to count the play against
             return
-        player = session.player  # "human", "agent:<name>" (Watch agent) or e.g. "race" (records its own plays)
+        # "human", "agent:<name>" (Watch agent) or e.g. "race" (a race records its own two plays)
+        player = getattr(session, "ended_player", session.player)
         kind = "human" if player == "human" else "agent" if player.startswith("agent") else None
         if kind is None:
             return

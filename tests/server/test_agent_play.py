@@ -184,7 +184,7 @@ def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app,
     with pytest.raises(ValueError, match="already training"):
         app.agents.train(first, steps=4000)
     (tmp_path / "release").touch()
-    _wait(lambda: first_job.finished)
+    assert first_job.settled.wait(60)  # finished and its specialist attached
     assert first_job.state == "done"
     rows = app.agents.level_agents.list(level_id)
     assert len(rows) == 1 and rows[0]["solve_rate"] == 0.75 and rows[0]["path"].is_dir()
@@ -194,7 +194,7 @@ def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app,
     _wait(lambda: "Training done" in _status(first_client))
     # The second run started once the first finished; it finishes at once (the release file exists) and stays
     # with its tab, since its level is not in the gallery.
-    _wait(lambda: second_job.finished)
+    assert second_job.settled.wait(60)
     assert second_job.state == "done"
     assert app.agents.specialists(second)[0][0].startswith("this tab's specialist")
     assert app.agents.level_agents.list(level_id) == rows
@@ -222,7 +222,7 @@ def test_cancel_training_from_the_tab(app, make_client, tmp_path):
     _wait(lambda: app.agents.tab(session).job is not None and len(app.agents.tab(session).job.progress) == 3)
     job = app.agents.tab(session).job
     client.click_button("Cancel training")
-    _wait(lambda: job.finished)
+    assert job.settled.wait(60)
     assert job.state == "cancelled" and not job.out_dir.exists()
     _wait(lambda: "Training cancelled." in _status(client))
 
@@ -249,7 +249,7 @@ def test_a_tiny_real_training_attaches_a_specialist_that_watch_agent_plays(app, 
                      train_options={"config": {"num_envs": 8, "num_steps": 32, "updates_per_call": 2}})
     try:
         job = link.train(session, steps=2048)
-        _wait(lambda: job.finished, timeout=900)
+        assert job.settled.wait(900)
         assert job.state == "done", job.error
         assert len(job.progress) == 8 and job.progress[-1]["env_steps"] == 2048
         assert [p["env_steps"] for p in job.progress] == sorted(p["env_steps"] for p in job.progress)
@@ -309,7 +309,7 @@ def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tm
     leaver.close()
     _wait(lambda: left.closed)
     (tmp_path / "release").touch()
-    _wait(lambda: kept_job.finished and left_job.finished)
+    assert kept_job.settled.wait(60) and left_job.settled.wait(60)
     assert kept_job.state == "done", "a gallery level's run goes on: its specialist is attached for everyone"
     assert left_job.state == "cancelled" and not left_job.out_dir.exists()
     assert len(app.agents.level_agents.list(level_id)) == 1
@@ -323,7 +323,7 @@ def test_a_tab_specialist_is_deleted_with_its_tab(app, make_client, tmp_path):
     client = make_client(app)
     session, _ = _session(app, client)
     job = app.agents.train(session, steps=4000)
-    _wait(lambda: job.finished)
+    assert job.settled.wait(60)
     assert job.state == "done" and app.agents.specialists(session)[0][1] == str(job.out_dir / "checkpoint")
     client.close()
     _wait(lambda tab=session: tab.closed)

@@ -224,6 +224,12 @@ class AgentLink:
         return race
 
     def _race_finished(self, race: RaceController) -> None:
+        try:
+            self._record_race(race)
+        finally:
+            race.recorded.set()
+
+    def _record_race(self, race: RaceController) -> None:
         session = race.session
         self._say(session, f"**{WINNER_TEXT[race.winner]}** You: {race.human.result or 'still playing'}, "
                            f"{race.human.seconds:.2f} s; agent: {race.agent.result or 'still playing'}, "
@@ -238,7 +244,6 @@ class AgentLink:
                                        seconds=float(side.seconds))
             except Exception as error:  # a lost statistic is not worth a crash (e.g. the level was deleted)
                 log.warning("race play not recorded for %s: %s", race.gallery_id, error)
-        race.recorded.set()
 
     # ------------------------------------------------------------------ query (?level=<id>&mode=agent)
 

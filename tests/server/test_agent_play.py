@@ -150,7 +150,7 @@ def test_race_human_wins_against_an_agent_that_misses_and_both_plays_are_recorde
     stats = app.store.stats(level_id)
     assert (stats["human_plays"], stats["human_solved"], stats["agent_plays"], stats["agent_solved"]) == (1, 1, 1, 0)
     _wait(lambda: "You win!" in _status(client))
-    assert session.mode == "ended"
+    _wait(lambda: session.mode == "ended")
     frame = session.render()
     assert frame.shape[1] == client.width, "one frame holds both halves"
 

@@ -116,6 +116,11 @@ class AgentLink:
         except Exception as error:
             log.info("agent action refused: %s", error)
             self._say(session, f"**Cannot do that:** {html.escape(str(error))}")
+        finally:  # the tab may show another level by now (Open from gallery): offer its specialists
+            try:
+                self.refresh_choices(session)
+            except Exception:
+                log.exception("could not refresh the agent choices")
 
     def _say(self, session, text: str) -> None:
         tab = self.tab(session)

@@ -38,7 +38,7 @@ MOTOR_SYMBOL = {0: "0", 1: "+", 2: "-"}  # multi-discrete motor values (server.p
 
 _FNS: dict[tuple, Callable] = {}  # (policy signature, size, observation) -> jitted (params, key, step, state)
 _ENVS: dict[tuple, object] = {}  # (size, observation) -> a KinetixEnv used only to observe states
-_POLICIES: dict[tuple, object] = {}  # (spec, size, observation) -> Policy (checkpoints are read once)
+_POLICIES: dict[tuple, object] = {}  # (spec, size) -> Policy (checkpoints are read once)
 _LOCK = threading.Lock()
 
 
@@ -62,11 +62,11 @@ def policy_for(spec: str, size):
     """`load_policy(spec, env)` for this size class, cached (a checkpoint is read from disk once)."""
     from kinetix.agents.policy import load_policy, required_observation
 
-    observation = required_observation(spec) or "entity"
-    key = (str(spec), _size_key(size), observation)
+    key = (str(spec), _size_key(size))  # run directories are never rewritten, so a path names one agent
     with _LOCK:
         policy = _POLICIES.get(key)
     if policy is None:
+        observation = required_observation(spec) or "entity"
         policy = load_policy(str(spec), observing_env(size, observation))
         with _LOCK:
             _POLICIES[key] = policy

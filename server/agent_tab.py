@@ -275,7 +275,8 @@ class AgentLink:
         if not 1 <= steps <= MAX_TRAIN_STEPS:
             raise ValueError(f"training steps must be between 1 and {MAX_TRAIN_STEPS:,}, got {steps:,}")
         target = self._attach_target(session, document)
-        run_name = f"{target or 'tab'}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
+        # Gallery ids may start with '-' or '_'; a run name always starts with a letter (a plain directory name).
+        run_name = f"run-{target or 'tab'}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
         run_dir = self.agents_dir / run_name
         run_dir.mkdir(parents=True, exist_ok=False)
         (run_dir / "level.json").write_text(json.dumps(document))

@@ -102,7 +102,7 @@ def test_the_watch_agent_button_shows_actions_per_binding_and_the_value(app, mak
     assert re.search(r"M0 [0+-] M1 [0+-] M2 [0+-] M3 [0+-] T0 (on|off) T1 (on|off)  V [+-]\d+\.\d\d", hud), hud
     assert "agent:general" in hud
     assert client.wait_frame(start, timeout=30)
-    assert "Watching **general**" in _status(client)
+    _wait(lambda: "Watching **general**" in _status(client))
     session.stop()
     assert session.controller is None and session.mode == "edit"
 
@@ -180,7 +180,7 @@ def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app,
     assert first_job.state == "running" and second_job.state == "queued"
     _wait(lambda: "position **1**" in _status(second_client))
     _wait(lambda: "Training: 3,000 / 4,000 steps" in _status(first_client))
-    assert first_client.find_gui("Training")["visible"], "the learning curve is shown"
+    _wait(lambda: first_client.find_gui("Training")["visible"])  # the learning curve is shown
     with pytest.raises(ValueError, match="already training"):
         app.agents.train(first, steps=4000)
     (tmp_path / "release").touch()
@@ -333,3 +333,21 @@ def test_a_tab_specialist_is_deleted_with_its_tab(app, make_client, tmp_path):
         gc.collect()
         time.sleep(0.1)
     assert not job.out_dir.exists(), "nothing outlives the tab that owned it"
+
+
+def test_a_specialist_attaches_to_a_level_whose_id_starts_with_a_dash(app, make_client, tmp_path):
+    from sqlalchemy import text
+
+    FAKE_TRAINING["release"] = str(tmp_path / "release")
+    (tmp_path / "release").touch()
+    source, _ = app.store.create_level("dash", to_document(build(falling_win_spec())))
+    with app.store._write() as conn:  # gallery ids are url-safe base64: '-' and '_' can come first
+        conn.execute(text("INSERT INTO levels (id, name, description, author_id, created, updated, parent_id, size, "
+                          "level_json, thumbnail) SELECT '-dash-first', name, description, author_id, created, "
+                          "updated, NULL, size, level_json, thumbnail FROM levels WHERE id = :src"), {"src": source})
+    client = make_client(app)
+    session, _ = _session(app, client)
+    GalleryLink(app.store).open(session, "-dash-first")
+    job = app.agents.train(session, steps=4000)
+    assert job.settled.wait(60) and job.state == "done"
+    assert len(app.agents.level_agents.list("-dash-first")) == 1

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import html
-import io
 import json
 import logging
 import secrets
@@ -431,9 +430,3 @@ def curve_image(progress: list[dict], size: tuple[int, int] = CURVE_SIZE) -> np.
                 points = points * 2
             pen.line(points, fill=colour, width=2)
     return np.asarray(image)
-
-
-def png_bytes(image: np.ndarray) -> bytes:
-    out = io.BytesIO()
-    Image.fromarray(image).save(out, format="PNG")
-    return out.getvalue()

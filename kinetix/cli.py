@@ -100,6 +100,9 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--db", metavar="URL", help="PostgreSQL URL for the gallery (default: SQLite in --data)")
     parser.add_argument("--max-sessions", type=positive_int, default=8,
                         help="most browser tabs served at once; more get a 'server full' message (default: 8)")
+    parser.add_argument("--max-training-runs", type=positive_int, default=1,
+                        help="training runs (worker processes) at once from 'Train on this level'; more queue "
+                             "(default: 1)")
     parser.add_argument("--warm", type=comma_list(str, allowed={"s", "m", "l", "none"}), default=["s", "m", "l"],
                         help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
     parser.add_argument("--no-record", dest="record", action="store_false",

@@ -41,6 +41,12 @@ class Config:
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
     record: bool = True  # record every play to MCAP (server.recorder); the tab's Recordings folder needs it
+    agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
+    warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
+    max_training_runs: int = 1  # training worker processes at once; more runs queue
+    train_steps: int = 100_000  # the default of a tab's "Training steps"
+    train_options: dict = dataclasses.field(default_factory=dict)  # e.g. {"config": {"num_envs": 8}} (tests)
+    train_worker: object = None  # the training worker function (tests swap in a cheap one); default train_worker
 
 
 class App:
@@ -55,6 +61,8 @@ class App:
         self._socket: socket.socket | None = None
         self.store = None  # the gallery Store, once started with the gallery on
         self.recorder = None  # the PlayRecorder (server.recorder), once started
+        self.training = None  # the TrainingPool, with agents on
+        self.agents = None  # the AgentLink, with agents on
 
     @property
     def port(self) -> int:
@@ -77,6 +85,8 @@ class App:
 
         if self.config.max_sessions < 1:
             raise ValueError(f"--max-sessions must be at least 1, got {self.config.max_sessions}")
+        if self.config.max_training_runs < 1:
+            raise ValueError(f"--max-training-runs must be at least 1, got {self.config.max_training_runs}")
         # Bind the user's port first so a busy port fails loudly (viser would silently take the next one).
         sock = socket.socket(socket.AF_INET6 if ":" in self.config.host else socket.AF_INET)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -93,10 +103,17 @@ class App:
             log.info("compiled the play step for size %s in %.1f s", size, time.perf_counter() - t0)
         # The malloc thresholds that keep frame buffers resident also keep XLA's compile-time memory: set them
         # after the background compiles (measured peak RSS, sizes s/m/l, 8 tabs: 1433 MB before, 1209 MB after).
+        # The general agent is compiled after the batched steps, on the same chain (one compile at a time).
+        after_compiles = keep_frame_buffers_resident
+        if self.config.agents and self.config.warm_agent and self.config.warm_sizes:
+            from server.agent_play import warm_in_background
+
+            sizes = self.config.warm_sizes
+            after_compiles = lambda: warm_in_background(sizes, then=keep_frame_buffers_resident)  # noqa: E731
         if self.config.warm_batches and self.config.warm_sizes:
-            play.warm_batches_in_background(self.config.warm_sizes, then=keep_frame_buffers_resident)
+            play.warm_batches_in_background(self.config.warm_sizes, then=after_compiles)
         else:
-            keep_frame_buffers_resident()
+            after_compiles()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
             self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
         self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)
@@ -112,6 +129,7 @@ class App:
         if self.recorder is None:
             self._start_recordings()
         app = create_app(self.manager, self.viser.get_port(), gallery_router=router)
+        self._attach_agents()
         config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
         self._uvicorn = uvicorn.Server(config)
         self._uvicorn.install_signal_handlers = lambda: None  # the main thread handles Ctrl+C
@@ -167,6 +185,18 @@ class App:
                 log.info("removed %d partial or old recordings from %s", len(removed), directory)
         self.manager.add_listener(self.recorder)
         self.manager.add_listener(RecordingPanel(self.recorder))
+    def _attach_agents(self) -> None:
+        """The Agent folder in every tab (after the gallery's hooks, so `?level=..&mode=agent` opens first)."""
+        if not self.config.agents:
+            return
+        from server.agent_tab import AgentLink
+        from server.training import TrainingPool, train_worker
+
+        self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker)
+        data_dir = Path(self.config.data) if self.config.data else default_data_dir()
+        self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,
+                                train_steps=self.config.train_steps, train_options=self.config.train_options)
+        self.agents.attach(self.manager)
 
     def stop(self) -> None:
         from server import play
@@ -175,6 +205,8 @@ class App:
             self.manager.close_all()
         if self.recorder is not None:
             self.recorder.close()  # finish recordings of plays cut short by the shutdown
+        if self.training is not None:
+            self.training.close()
         if not play.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
             log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
@@ -199,7 +231,7 @@ def serve(args) -> int:
     config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
                     db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
                     warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"),
-                    record=getattr(args, "record", True))
+                    record=getattr(args, "record", True), max_training_runs=getattr(args, "max_training_runs", 1))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

@@ -34,7 +34,15 @@ log = logging.getLogger(__name__)
 BATCH_SLACK_S = 0.002  # sessions due within this much of each other step in one batch
 MAX_PIXELS = 1280 * 800  # larger canvases are rendered smaller at the same aspect ratio (the browser scales up)
 JPEG_QUALITY = 85
-RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke."}
+RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke.",
+               "stopped": "Stopped."}
+
+
+def episode_end(result) -> str | None:
+    """How a step ended its episode ("solved" | "failed" | "truncated" | "nan"), or None if it goes on."""
+    if not (result.terminated or result.truncated):
+        return None
+    return "solved" if result.solved else "failed" if result.failed else "truncated" if result.truncated else "nan"
 
 
 class PlayListener:
@@ -78,6 +86,14 @@ class Controller:
     def hud(self) -> str:
         """Extra text for the play HUD (e.g. the action per binding and the value estimate); '' for none."""
         return ""
+
+    def episode_end(self, state, result) -> str | None:
+        """After each step: the play's result if it is over now, else None (a race decides for both sides)."""
+        return episode_end(result)
+
+    def draw(self, session: Session, view: draw.View, banner: str) -> np.ndarray | None:
+        """A play frame of its own (e.g. an overlay, a race's two halves), or None for the usual one."""
+        return None
 
 
 @dataclasses.dataclass
@@ -189,6 +205,7 @@ class Session:
         self.gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self.replay = None  # a server.replay.Replay while the tab shows a recording (mode "replay")
+        self.ended_player = "human"  # the player of the last play that ended (see _finish_step)
         self._build_gui()
         self._wire_pointer()
         self.refresh(force=True)
@@ -477,13 +494,14 @@ class Session:
             self._play = (stepper, state, params)
             self._steps = result.timestep
             self.manager.notify("play_stepped", self, plan.action, state, result)
-            if result.terminated or result.truncated:
-                self._result = "solved" if result.solved else "failed" if result.failed else (
-                    "truncated" if result.truncated else "nan")
+            end = episode_end(result) if self.controller is None else self.controller.episode_end(state, result)
+            if end is not None:
+                self._result = end
                 self.mode = "ended"
                 self.held.clear()
                 self._set_buttons()
                 seconds = result.timestep * float(params.sim.dt) * stepper.frame_skip
+                self.ended_player = self.player  # who played it, for on_play_end (a new play may start meanwhile)
                 self.manager.notify("play_ended", self, self._result, result.timestep, seconds)
                 if self.manager.on_play_end is not None:  # e.g. the gallery's play statistics; off the play thread
                     threading.Thread(target=self.manager.on_play_end,
@@ -531,7 +549,11 @@ class Session:
         banner = ""
         if self.mode == "ended":
             seconds = self._steps * float(params.sim.dt) * stepper.frame_skip
-            banner = f"{RESULT_TEXT[self._result]}\n{seconds:.2f} s, {self._steps} steps"
+            banner = f"{RESULT_TEXT.get(self._result, self._result)}\n{seconds:.2f} s, {self._steps} steps"
+        if self.controller is not None:
+            frame = self.controller.draw(self, self._view, banner)
+            if frame is not None:
+                return frame
         self._play_scene = draw.scene_of(state.level, static_from=self._play_scene)
         return draw.draw_frame(self._play_scene, self._view, hud=self.hud(), banner=banner)
 

@@ -50,6 +50,7 @@ function card(level) {
   q(".best-run").disabled = !level.stats.has_best_run;
   q(".best-run").title = level.stats.has_best_run ? "Replay the fastest human solve" : "No recorded solve yet";
   q(".best-run").addEventListener("click", () => { location.href = `/?level=${id}&mode=replay`; });
+  q(".watch").href = `/?level=${id}&mode=agent`;
   const mine = myVotes()[level.id] || 0;
   q(".up").classList.toggle("mine", mine === 1);
   q(".down").classList.toggle("mine", mine === -1);

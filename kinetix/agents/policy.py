@@ -36,11 +36,19 @@ class Policy:
     name: str
     action_type: str
     observation: str | None  # the observation type it needs (None: any)
-    _act: Callable[[jax.Array, object], tuple[jax.Array, jax.Array]]
+    _apply: Callable[[object, jax.Array, object], tuple[jax.Array, jax.Array]]
+    params: object = None  # the network parameters (None for noop and random)
+    # Equal for policies whose `apply` is the same computation (same network shape, action space and sampling):
+    # a server jits `apply(params, key, obs)` once per signature and passes each agent's params as an argument.
+    signature: tuple = ()
 
     def act(self, key: jax.Array, obs) -> tuple[jax.Array, jax.Array]:
         """(action, value estimate) for one observation."""
-        return self._act(key, obs)
+        return self._apply(self.params, key, obs)
+
+    def apply(self, params, key: jax.Array, obs) -> tuple[jax.Array, jax.Array]:
+        """`act` with the parameters as an argument (jit this to share one compile between agents)."""
+        return self._apply(params, key, obs)
 
 
 def resolve(spec: str) -> str | Path:
@@ -69,10 +77,12 @@ def load_policy(spec: str, env: KinetixEnv, deterministic: bool = False) -> Poli
     zero = jnp.asarray(0.0, jnp.float32)
     if where == "noop":
         action = actions.noop_action(action_type)
-        return Policy("noop", action_type, None, lambda key, obs: (action, zero))
+        return Policy("noop", action_type, None, lambda params, key, obs: (action, zero),
+                      signature=("noop", action_type))
     if where == "random":
         return Policy("random", action_type, None,
-                      lambda key, obs: (actions.sample_random_action(key, action_type), zero))
+                      lambda params, key, obs: (actions.sample_random_action(key, action_type), zero),
+                      signature=("random", action_type))
     ckpt = checkpoint_module.load(where)
     need = ckpt.env
     if need["observation"] != env.config.observation:
@@ -90,12 +100,13 @@ def load_policy(spec: str, env: KinetixEnv, deterministic: bool = False) -> Poli
     network = ActorCritic(network=tc.network, action=action_type, width=tc.width, hidden=tc.hidden)
     params = jax.tree.map(jnp.asarray, ckpt.params)
 
-    def act(key, obs):
+    def apply(net_params, key, obs):
         batched = jax.tree.map(lambda x: jnp.asarray(x)[None], obs)
-        outputs, value = network.apply({"params": params}, batched)
+        outputs, value = network.apply({"params": net_params}, batched)
         action = (distributions.mode(outputs, action_type) if deterministic
                   else distributions.sample(key, outputs, action_type))
         return action[0], value[0]
 
     name = "general" if spec == "general" else str(where)
-    return Policy(name, action_type, need["observation"], act)
+    signature = ("network", tc.network, tc.width, tc.hidden, action_type, need["observation"], deterministic)
+    return Policy(name, action_type, need["observation"], apply, params, signature)

@@ -58,6 +58,18 @@ MIGRATIONS: list[tuple[int, str, list[str]]] = [
         "CREATE INDEX plays_level ON plays (level_id, kind)",
         "CREATE INDEX level_tags_tag ON level_tags (tag)",
     ]),
+    (3, "specialist agents trained on a level (checkpoint directories under <data dir>/agents/)", [
+        """CREATE TABLE level_agents (
+            id {serial_pk},
+            level_id VARCHAR(32) NOT NULL REFERENCES levels(id) ON DELETE CASCADE,
+            name VARCHAR(64) NOT NULL,
+            checkpoint VARCHAR(255) NOT NULL,
+            steps INTEGER NOT NULL,
+            solve_rate DOUBLE PRECISION,
+            mean_return DOUBLE PRECISION,
+            created BIGINT NOT NULL)""",
+        "CREATE INDEX level_agents_level ON level_agents (level_id)",
+    ]),
 ]
 
 LATEST = MIGRATIONS[-1][0]

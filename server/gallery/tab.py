@@ -5,9 +5,9 @@
   listing the newest levels), plus a link to the /gallery page;
 - `/?level=<id>` opens that level in the tab (`&mode=play` starts playing it); the page's query reaches Python
   through the /keys hello;
-- every finished play of a level that is in the gallery is recorded as a human play (solved, steps, seconds of
-  simulated time, so pauses and a slow machine do not change a player's time); with the server's PlayRecorder,
-  a human solve that beats the level's best keeps its recording (server.gallery.runs);
+- every finished play of a level that is in the gallery is recorded (solved, steps, seconds of simulated time, so
+  pauses and a slow machine do not change a player's time), as kind "agent" when an agent played it; with the
+  server's PlayRecorder, a human solve that beats the level's best keeps its recording (server.gallery.runs);
 - `/?level=<id>&mode=replay` replays the level's best run (server.replay).
 
 A save made while editing a gallery level is a remix: it keeps that level as its parent. The author token comes
@@ -159,9 +159,14 @@ class GalleryLink:
         if session.gallery_id is None:  # an unsaved level has no gallery entry to count the play against
             return
         level_id = session.gallery_id
+        # "human", "agent:<name>" (Watch agent) or e.g. "race" (a race records its own two plays)
+        player = getattr(session, "ended_player", session.player)
+        kind = "human" if player == "human" else "agent" if player.startswith("agent") else None
+        if kind is None:
+            return
         best = self.runs.candidate(self.recorder, session, result, steps, seconds) if self.runs else None
         try:
-            self.store.record_play(level_id, "human", solved=result == "solved", steps=int(steps),
+            self.store.record_play(level_id, kind, solved=result == "solved", steps=int(steps),
                                    seconds=float(seconds), recording_path=best)
         except StoreError as error:  # e.g. the level was deleted meanwhile; a lost statistic is not worth a crash
             log.warning("play not recorded for %s: %s", level_id, error)

@@ -19,9 +19,11 @@ def running_app(**config):
     from server.app import App, Config
 
     # No background compiles of batched steps: tests that need them ask for them (test_play_batch.py).
-    # Recordings (on by default) go to a temporary data dir unless the test gives one.
+    # Recordings (on by default) go to a temporary data dir unless the test gives one. Nor is the general agent
+    # compiled at start: tests that watch it compile it on first use.
     with tempfile.TemporaryDirectory(prefix="kinetix-test-data-") as data:
-        app = App(Config(**{"port": 0, "gallery": False, "warm_batches": False, "data": Path(data), **config}))
+        app = App(Config(**{"port": 0, "gallery": False, "warm_batches": False, "warm_agent": False,
+                            "data": Path(data), **config}))
         app.start()
         try:
             yield app

@@ -50,3 +50,16 @@ def test_serve_refuses_a_busy_port(tmp_path):
                                 timeout=60)
     assert result.returncode == 2
     assert f"cannot listen on 127.0.0.1:{port}" in result.stdout
+
+
+def test_serve_parses_the_training_cap_and_refuses_zero(capsys):
+    import pytest
+
+    from kinetix.cli import build_parser
+
+    args = build_parser().parse_args(["serve", "--max-training-runs", "2"])
+    assert args.max_training_runs == 2
+    assert build_parser().parse_args(["serve"]).max_training_runs == 1  # one run at a time by default
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["serve", "--max-training-runs", "0"])
+    assert "max-training-runs" in capsys.readouterr().err

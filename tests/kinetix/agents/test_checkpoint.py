@@ -53,6 +53,22 @@ def test_policy_from_checkpoint_matches_the_network(trained, env):
     assert env.action_space.contains(np.asarray(action))
 
 
+def test_apply_takes_the_parameters_as_an_argument_and_signatures_group_equal_programs(trained, env):
+    path, params, _, network, obs = trained
+    policy = load_policy(str(path), env, deterministic=True)
+    apply = jax.jit(policy.apply)
+    action, value = apply(policy.params, jax.random.key(0), obs)
+    np.testing.assert_array_equal(action, policy.act(jax.random.key(0), obs)[0])
+    # Other parameters through the same compiled function give that network's value.
+    other = jax.tree.map(lambda x: x * 0.5, policy.params)
+    _, other_value = apply(other, jax.random.key(0), obs)
+    _, expected = network.apply({"params": other}, jax.tree.map(lambda x: x[None], obs))
+    np.testing.assert_allclose(other_value, expected[0], rtol=1e-5)
+    assert load_policy(str(path), env, deterministic=True).signature == policy.signature
+    assert load_policy(str(path), env).signature != policy.signature  # sampling is another program
+    assert load_policy("noop", env).signature != policy.signature
+
+
 def test_noop_and_random_policies(env):
     obs, _ = env.reset(jax.random.key(0))
     noop = load_policy("noop", env)

@@ -1,0 +1,432 @@
+"""The "Agent" folder of every tab: Watch agent, Race the agent, Train on this level (with progress and cancel).
+
+`AgentLink(store=..., agents_dir=..., pool=...).attach(manager)` chains onto the manager's GUI and query hooks
+(after the gallery's), so:
+- every tab gets an Agent folder: a choice of agent ("general", the newest specialist, and every specialist of
+  the level by name), Watch agent, Race the agent, Train on this level, Cancel training, a progress bar, a
+  status line and a learning-curve image redrawn from the worker's progress;
+- `/?level=<id>&mode=agent` (the gallery card's "Watch agent") opens the level and starts the agent on it.
+
+Specialists. A run trained on a gallery level whose tab still shows that level unchanged is attached to it
+(gallery table `level_agents`, checkpoint under `<data dir>/agents/<run>/checkpoint`), so every tab that opens
+the level can watch it. A run trained on anything else (a new level, or a gallery level edited since it was
+opened) lives with the tab: it is offered there until the tab closes, then its files are deleted, unless the
+tab's level is saved to the gallery meanwhile (then it is attached to the saved level).
+
+Plays: Watch agent plays are recorded by the gallery link (kind "agent", the session's player is
+"agent:<name>"). A race records both of its plays itself when it is decided (kind "human" and kind "agent").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+import json
+import logging
+import secrets
+import shutil
+import threading
+import time
+import weakref
+from pathlib import Path
+from urllib.parse import parse_qs
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from server.agent_play import WINNER_TEXT, AgentController, AgentRunner, RaceController
+from server.training import TrainingJob, TrainingPool
+
+log = logging.getLogger(__name__)
+
+GENERAL = "general"
+NEWEST = "newest specialist"
+BEST = "best: newest specialist, else general"
+DEFAULT_TRAIN_STEPS = 100_000
+MAX_TRAIN_STEPS = 10_000_000  # a tab cannot start a run of days by a typo
+CURVE_SIZE = (300, 130)
+
+
+class AgentLink:
+    def __init__(self, *, store=None, agents_dir: str | Path, pool: TrainingPool | None = None,
+                 train_steps: int = DEFAULT_TRAIN_STEPS, train_options: dict | None = None):
+        from server.gallery.agents import LevelAgents
+
+        self.store = store
+        self.agents_dir = Path(agents_dir)
+        self.level_agents = LevelAgents(store, self.agents_dir) if store is not None else None
+        self.pool = pool
+        self.train_steps = train_steps
+        self.train_options = train_options or {}
+        self._lock = threading.Lock()
+
+    def attach(self, manager) -> None:
+        previous_gui, previous_query = manager.on_session_gui, manager.on_query
+
+        def on_session_gui(session) -> None:
+            if previous_gui is not None:
+                previous_gui(session)
+            self.build_gui(session)
+
+        def on_query(session, query: str) -> None:
+            if previous_query is not None:
+                previous_query(session, query)
+            self.open_from_query(session, query)
+
+        manager.on_session_gui = on_session_gui
+        manager.on_query = on_query
+
+    def tab(self, session) -> TabAgents:
+        # Kept on the session itself, not in a dict keyed by it: its GUI callbacks refer to the session, so a
+        # WeakKeyDictionary value would keep its key alive for ever.
+        with self._lock:
+            tab = getattr(session, "agent_tab", None)
+            if tab is None:
+                tab = session.agent_tab = TabAgents()
+            return tab
+
+    # ------------------------------------------------------------------ GUI
+
+    def build_gui(self, session) -> None:
+        gui = session.client.gui
+        tab = self.tab(session)
+        with gui.add_folder("Agent"):
+            tab.choice = gui.add_dropdown("Agent", options=(BEST, GENERAL, NEWEST), initial_value=BEST)
+            watch = gui.add_button("Watch agent")
+            race = gui.add_button("Race the agent")
+            tab.steps = gui.add_number("Training steps", initial_value=self.train_steps, min=1000, max=MAX_TRAIN_STEPS,
+                                       step=1000)
+            train = gui.add_button("Train on this level", disabled=self.pool is None)
+            tab.cancel = gui.add_button("Cancel training", disabled=True)
+            tab.bar = gui.add_progress_bar(0.0, visible=False)
+            tab.status = gui.add_markdown("")
+            tab.curve = gui.add_image(np.full((CURVE_SIZE[1], CURVE_SIZE[0], 3), 255, np.uint8), label="Training",
+                                      format="png", visible=False)
+        watch.on_click(lambda _event: self._guarded(session, self.watch, session))
+        race.on_click(lambda _event: self._guarded(session, self.race, session))
+        train.on_click(lambda _event: self._guarded(session, self.train, session))
+        tab.cancel.on_click(lambda _event: self.cancel_training(session))
+        tab.choice.on_update(lambda _event: None)
+
+    def _guarded(self, session, action, *args) -> None:
+        """Run a button's action; a refusal (bad agent, level that does not build) is shown, not raised."""
+        try:
+            action(*args)
+        except Exception as error:
+            log.info("agent action refused: %s", error)
+            self._say(session, f"**Cannot do that:** {html.escape(str(error))}")
+        finally:  # the tab may show another level by now (Open from gallery): offer its specialists
+            try:
+                self.refresh_choices(session)
+            except Exception:
+                log.exception("could not refresh the agent choices")
+
+    def _say(self, session, text: str) -> None:
+        tab = self.tab(session)
+        if tab.status is not None and not session.closed:
+            tab.status.content = text
+
+    def refresh_choices(self, session) -> None:
+        tab = self.tab(session)
+        if tab.choice is None or session.closed:
+            return
+        labels = [BEST, GENERAL, NEWEST] + [label for label, _ in self.specialists(session)]
+        current = tab.choice.value
+        tab.choice.options = tuple(dict.fromkeys(labels))
+        if current in labels:
+            tab.choice.value = current
+
+    # ------------------------------------------------------------------ choosing an agent
+
+    def specialists(self, session) -> list[tuple[str, str]]:
+        """(label, checkpoint dir) of the specialists for the tab's level, newest first."""
+        self._adopt_saved(session)
+        out = [(local.label, str(self.agents_dir / local.run_name / "checkpoint"))
+               for local in reversed(self.tab(session).local)]
+        level_id = session.gallery_id
+        if self.level_agents is not None and level_id is not None:
+            try:
+                out += [(f"{row['name']} (#{row['id']})", str(row["path"])) for row in self.level_agents.list(level_id)]
+            except Exception:
+                log.exception("could not list the specialists of %s", level_id)
+        return out
+
+    def _adopt_saved(self, session) -> None:
+        """The tab's own specialists whose level has since been saved to the gallery (unchanged) are attached to it
+        and kept for good."""
+        tab = self.tab(session)
+        if not tab.local or self.level_agents is None or session.gallery_id is None:
+            return
+        try:
+            stored = _without_name(self.store.get_level(session.gallery_id)["level"])
+        except Exception:
+            return
+        for local in list(tab.local):
+            try:
+                trained_on = json.loads((self.agents_dir / local.run_name / "level.json").read_text())
+                if _without_name(trained_on) != stored:
+                    continue
+                self.level_agents.attach(session.gallery_id, local.run_name, steps=local.steps,
+                                         solve_rate=local.solve_rate, mean_return=local.mean_return,
+                                         name=local.label.replace("this tab's ", ""))
+            except Exception as error:
+                log.warning("tab specialist %s not attached: %s", local.run_name, error)
+                continue
+            local.finalizer.detach()  # the gallery owns it now: keep the files when the tab closes
+            tab.local.remove(local)
+
+    def resolve(self, session, choice: str | None) -> tuple[str, str]:
+        """(label, load_policy spec) for a dropdown label, "general", "noop", "random", "newest specialist" or
+        "best" (the newest specialist if the level has one, else general)."""
+        choice = choice or (self.tab(session).choice.value if self.tab(session).choice is not None else BEST)
+        if choice in (GENERAL, "noop", "random"):
+            return choice, choice
+        specialists = self.specialists(session)
+        if choice in (BEST, "best"):
+            return specialists[0] if specialists else (GENERAL, GENERAL)
+        if choice == NEWEST:
+            if not specialists:
+                raise ValueError("this level has no specialist yet: train one (Train on this level)")
+            return specialists[0]
+        for label, path in specialists:
+            if label == choice:
+                return label, path
+        raise ValueError(f"no agent {choice!r} for this level")
+
+    def runner(self, session, choice: str | None = None, policy=None) -> AgentRunner:
+        from server.play import stepper_for
+
+        label, spec = self.resolve(session, choice) if policy is None else (policy.name, policy.name)
+        level_file = session.editor.level_file()
+        self._say(session, f"Preparing **{html.escape(label)}** (the first time for a size class compiles it)...")
+        runner = AgentRunner(spec, level_file.size, label=label.split(" (#")[0], policy=policy,
+                             seed=secrets.randbits(31))
+        runner.warm(stepper_for(level_file).start(level_file)[0])  # here, not on the play thread
+        return runner
+
+    # ------------------------------------------------------------------ watch and race
+
+    def watch(self, session, choice: str | None = None, policy=None) -> AgentController:
+        """Start the agent playing the tab's level (the keyboard drives nothing until the play stops)."""
+        controller = AgentController(self.runner(session, choice, policy))
+        session.play(controller=controller)
+        self._say(session, f"Watching **{html.escape(controller.runner.label)}**. Space or Esc: back to editing.")
+        return controller
+
+    def race(self, session, choice: str | None = None, policy=None) -> RaceController:
+        """Start a race: the human plays the left half with the keys, the agent the right half."""
+        from server.play import stepper_for
+
+        runner = self.runner(session, choice, policy)
+        level_file = session.editor.level_file()
+        stepper = stepper_for(level_file)
+        state, params = stepper.start(level_file)
+        race = RaceController(session, runner, stepper, state, params, on_finish=self._race_finished)
+        race.gallery_id = session.gallery_id
+        session.play(controller=race)
+        self._say(session, f"Racing **{html.escape(runner.label)}**: you play the left half. First to solve wins.")
+        return race
+
+    def _race_finished(self, race: RaceController) -> None:
+        try:
+            self._record_race(race)
+        finally:
+            race.recorded.set()
+
+    def _record_race(self, race: RaceController) -> None:
+        session = race.session
+        self._say(session, f"**{WINNER_TEXT[race.winner]}** You: {race.human.result or 'still playing'}, "
+                           f"{race.human.seconds:.2f} s; agent: {race.agent.result or 'still playing'}, "
+                           f"{race.agent.seconds:.2f} s.")
+        if self.store is None or race.gallery_id is None:
+            return
+        # Both plays are recorded; a side still playing when the other solved lost the race: recorded unsolved,
+        # with the steps it had played.
+        for side, kind in ((race.human, "human"), (race.agent, "agent")):
+            try:
+                self.store.record_play(race.gallery_id, kind, solved=side.solved, steps=int(side.steps),
+                                       seconds=float(side.seconds))
+            except Exception as error:  # a lost statistic is not worth a crash (e.g. the level was deleted)
+                log.warning("race play not recorded for %s: %s", race.gallery_id, error)
+
+    # ------------------------------------------------------------------ query (?level=<id>&mode=agent)
+
+    def open_from_query(self, session, query: str) -> None:
+        params = parse_qs(query.lstrip("?"))
+        if (params.get("mode") or [""])[0] != "agent":
+            return
+        if params.get("level") and session.gallery_id is None:  # the gallery could not open it (and said so)
+            return
+        self.refresh_choices(session)
+        self._guarded(session, self.watch, session, (params.get("agent") or [BEST])[0])
+
+    # ------------------------------------------------------------------ training
+
+    def train(self, session, steps: int | None = None, options: dict | None = None) -> TrainingJob:
+        """Train a specialist on the tab's level in a worker process (queued beyond the pool's cap)."""
+        if self.pool is None:
+            raise ValueError("training is off on this server")
+        tab = self.tab(session)
+        if tab.job is not None and not tab.job.finished:
+            raise ValueError("this tab is already training; cancel it first")
+        document = json.loads(session.editor.export("ours"))
+        steps = int(steps if steps is not None else (tab.steps.value if tab.steps is not None else self.train_steps))
+        if not 1 <= steps <= MAX_TRAIN_STEPS:
+            raise ValueError(f"training steps must be between 1 and {MAX_TRAIN_STEPS:,}, got {steps:,}")
+        target = self._attach_target(session, document)
+        # Gallery ids may start with '-' or '_'; a run name always starts with a letter (a plain directory name).
+        run_name = f"run-{target or 'tab'}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
+        run_dir = self.agents_dir / run_name
+        run_dir.mkdir(parents=True, exist_ok=False)
+        (run_dir / "level.json").write_text(json.dumps(document))
+        session_ref = weakref.ref(session)
+        job = self.pool.submit(run_dir / "level.json", run_dir, steps=steps,
+                               options={**self.train_options, **(options or {})},
+                               on_update=lambda job: self._show_progress(session_ref(), job, target),
+                               on_done=lambda job: self._training_done(session_ref(), job, target, run_name))
+        tab.job = job
+        if tab.cancel is not None:
+            tab.cancel.disabled = False
+        self._show_progress(session, job)
+        return job
+
+    def _attach_target(self, session, document: dict) -> str | None:
+        """The gallery level a specialist trained on this document belongs to, if the tab shows it unchanged."""
+        if self.store is None or session.gallery_id is None:
+            return None
+        try:
+            stored = self.store.get_level(session.gallery_id)["level"]
+        except Exception:
+            return None
+        return session.gallery_id if _without_name(stored) == _without_name(document) else None
+
+    def cancel_training(self, session) -> None:
+        tab = self.tab(session)
+        if tab.job is not None and not tab.job.finished and self.pool is not None:
+            self.pool.cancel(tab.job)
+
+    def _show_progress(self, session, job: TrainingJob, target: str | None = None) -> None:
+        if session is None or session.closed:
+            if target is None and self.pool is not None:  # nobody can use a closed tab's specialist of its own
+                self.pool.cancel(job)
+            return
+        tab = self.tab(session)
+        if tab.job is not job:
+            return
+        if tab.bar is not None:
+            tab.bar.visible = True
+            tab.bar.value = round(100 * job.fraction, 1)
+        position = self.pool.position(job) if self.pool is not None else 0
+        if job.state == "queued":
+            self._say(session, f"Training queued: position **{position}** (at most {self.pool.max_running} "
+                               f"run{'s' if self.pool.max_running > 1 else ''} at a time).")
+        elif job.state == "running":
+            if job.progress:
+                last = job.progress[-1]
+                self._say(session, f"Training: {int(last['env_steps']):,} / {int(last['total_steps']):,} steps, "
+                                   f"return {last['mean_return']:.2f}, solved {100 * last['solve_rate']:.0f}%, "
+                                   f"{last['steps_per_second']:.0f} steps/s")
+                if tab.curve is not None:
+                    tab.curve.image = curve_image(job.progress)
+                    tab.curve.visible = True
+            else:
+                self._say(session, "Training: starting the worker and compiling (about a minute)...")
+
+    def _training_done(self, session, job: TrainingJob, target: str | None, run_name: str) -> None:
+        run_dir = self.agents_dir / run_name
+        if job.state != "done":
+            shutil.rmtree(run_dir, ignore_errors=True)
+        attached = None
+        if job.state == "done":
+            result = job.result or {}
+            if target is not None and self.level_agents is not None:
+                try:
+                    agent_id = self.level_agents.attach(
+                        target, run_name, steps=int(result.get("steps") or 0), solve_rate=result.get("solve_rate"),
+                        mean_return=result.get("mean_return"),
+                        name=f"specialist {time.strftime('%m-%d %H:%M')}")
+                    attached = f"attached to gallery level {target} (#{agent_id})"
+                except Exception as error:
+                    log.warning("specialist not attached to %s: %s", target, error)
+            if attached is None:
+                if session is None:  # the tab is gone and the run belongs to no gallery level
+                    shutil.rmtree(run_dir, ignore_errors=True)
+                    return
+                result = job.result or {}
+                self.tab(session).local.append(LocalSpecialist(
+                    f"this tab's specialist {time.strftime('%H:%M:%S')}", run_name, int(result.get("steps") or 0),
+                    result.get("solve_rate"), result.get("mean_return"),
+                    weakref.finalize(session, shutil.rmtree, str(run_dir), True)))  # lives as long as the tab
+                attached = "kept with this tab (save the level to the gallery to keep it)"
+        if session is None or session.closed:
+            return
+        tab = self.tab(session)
+        if tab.cancel is not None:
+            tab.cancel.disabled = True
+        if tab.bar is not None:
+            tab.bar.value = 100.0 if job.state == "done" else 0.0
+        if job.state == "done":
+            self.refresh_choices(session)
+            if tab.choice is not None:
+                tab.choice.value = NEWEST
+            solve = (job.result or {}).get("solve_rate")
+            solved = f", last solve rate {100 * solve:.0f}%" if solve is not None else ""
+            self._say(session, f"**Training done**{solved}: {attached}. Watch agent now uses it.")
+        elif job.state == "cancelled":
+            self._say(session, "Training cancelled.")
+        else:
+            self._say(session, f"**Training failed:** {html.escape(job.error or 'unknown error')}")
+
+
+class TabAgents:
+    """One tab's agent state: its GUI handles, its training job and the specialists that live with it."""
+
+    def __init__(self) -> None:
+        self.choice = self.steps = self.cancel = self.bar = self.status = self.curve = None
+        self.job: TrainingJob | None = None
+        self.local: list[LocalSpecialist] = []  # trained on a level not in the gallery (oldest first)
+
+
+@dataclasses.dataclass(eq=False)
+class LocalSpecialist:
+    """A specialist that lives with its tab: its run directory is deleted when the tab goes (`finalizer`),
+    unless the level is saved to the gallery meanwhile and it is attached there."""
+
+    label: str
+    run_name: str
+    steps: int
+    solve_rate: float | None
+    mean_return: float | None
+    finalizer: weakref.finalize
+
+
+def _without_name(document: dict) -> dict:
+    """A level document without its name (the gallery sets the name on save), for comparing levels."""
+    return {key: value for key, value in document.items() if key != "name"}
+
+
+def curve_image(progress: list[dict], size: tuple[int, int] = CURVE_SIZE) -> np.ndarray:
+    """A small learning-curve image: mean return (blue, own scale) and solve rate (green, 0..1) over env steps."""
+    width, height = size
+    image = Image.new("RGB", size, (255, 255, 255))
+    pen = ImageDraw.Draw(image)
+    left, right, top, bottom = 6, width - 6, 16, height - 6
+    pen.rectangle([left, top, right, bottom], outline=(190, 190, 190))
+    pen.text((left, 2), "return", fill=(30, 80, 220))
+    pen.text((left + 60, 2), "solve rate", fill=(20, 150, 60))
+    steps = np.array([float(p["env_steps"]) for p in progress])
+    if len(steps) >= 1:
+        total = max(float(progress[-1].get("total_steps") or steps[-1]), 1.0)
+        returns = np.array([float(p["mean_return"]) for p in progress])
+        returns = np.where(np.isfinite(returns), returns, 0.0)
+        solve = np.clip(np.nan_to_num(np.array([float(p["solve_rate"]) for p in progress])), 0.0, 1.0)
+        lo, hi = float(returns.min()), float(returns.max())
+        scaled = (returns - lo) / (hi - lo) if hi > lo else np.full_like(returns, 0.5)
+        xs = left + (right - left) * steps / total
+        for values, colour in ((scaled, (30, 80, 220)), (solve, (20, 150, 60))):
+            ys = bottom - (bottom - top) * values
+            points = list(zip(xs.tolist(), ys.tolist(), strict=True))
+            if len(points) == 1:
+                points = points * 2
+            pen.line(points, fill=colour, width=2)
+    return np.asarray(image)

@@ -1,0 +1,73 @@
+"""Specialist agents attached to gallery levels (table `level_agents`, gallery migration 3).
+
+    agents = LevelAgents(store, data_dir / "agents")
+    agent_id = agents.attach(level_id, "run-20261123-a1b2", steps=8192, solve_rate=0.9, mean_return=1.2)
+    agents.list(level_id)      # [{"id", "name", "path", "steps", "solve_rate", "mean_return", "created"}], newest first
+
+A row names a checkpoint directory by its plain name inside `agents_dir` (never a path), so a row can never
+point outside the data dir; `path` in the listing is the resolved directory. Attaching checks that the
+directory holds a checkpoint, so a row never points at a half-written run.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from sqlalchemy import BigInteger, Column, Float, Integer, MetaData, String, Table, select
+
+from server.gallery.store import Invalid, NotFound, Store, check_id, levels_t, now_ms
+
+CHECKPOINT_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
+MAX_AGENT_NAME = 64
+
+_meta = MetaData()
+level_agents_t = Table(
+    "level_agents", _meta, Column("id", BigInteger, primary_key=True), Column("level_id", String(32)),
+    Column("name", String(64)), Column("checkpoint", String(255)), Column("steps", Integer),
+    Column("solve_rate", Float), Column("mean_return", Float), Column("created", BigInteger))
+
+
+class LevelAgents:
+    def __init__(self, store: Store, agents_dir: str | os.PathLike):
+        self.store = store
+        self.agents_dir = Path(agents_dir)
+
+    def run_dir(self, name: str) -> Path:
+        """The directory of a training run named `name` inside the agents dir (its checkpoint is `/checkpoint`)."""
+        if not CHECKPOINT_NAME_RE.match(name or "") or ".." in name:
+            raise Invalid(f"agent run name {name!r}: expected a plain directory name")
+        return self.agents_dir / name
+
+    def attach(self, level_id: str, run_name: str, *, steps: int, solve_rate: float | None = None,
+               mean_return: float | None = None, name: str | None = None) -> int:
+        """Record the checkpoint of run `run_name` as a specialist of `level_id`; returns the agent's id."""
+        level_id = check_id(level_id)
+        checkpoint = self.run_dir(run_name) / "checkpoint"
+        if not (checkpoint / "config.json").is_file():
+            raise Invalid(f"agent run {run_name!r} has no checkpoint")
+        label = (name or f"specialist {run_name}")[:MAX_AGENT_NAME]
+        with self.store._write() as conn:
+            if conn.execute(select(levels_t.c.id).where(levels_t.c.id == level_id)).first() is None:
+                raise NotFound(f"no level {level_id!r} in the gallery")
+            result = conn.execute(level_agents_t.insert().values(
+                level_id=level_id, name=label, checkpoint=run_name, steps=int(steps),
+                solve_rate=None if solve_rate is None else float(solve_rate),
+                mean_return=None if mean_return is None else float(mean_return), created=now_ms()))
+            return int(result.inserted_primary_key[0])
+
+    def list(self, level_id: str) -> list[dict]:
+        """The specialists of a level, newest first (rows whose checkpoint is gone are left out)."""
+        with self.store._read() as conn:
+            rows = conn.execute(select(level_agents_t).where(level_agents_t.c.level_id == level_id)
+                                .order_by(level_agents_t.c.created.desc(), level_agents_t.c.id.desc())).all()
+        out = []
+        for row in rows:
+            if not CHECKPOINT_NAME_RE.match(row.checkpoint) or ".." in row.checkpoint:
+                continue  # never follow a stored name that could leave the agents dir
+            path = self.agents_dir / row.checkpoint / "checkpoint"
+            if path.is_dir():
+                out.append({"id": int(row.id), "name": row.name, "path": path, "steps": int(row.steps),
+                            "solve_rate": row.solve_rate, "mean_return": row.mean_return, "created": row.created})
+        return out

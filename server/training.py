@@ -1,0 +1,247 @@
+"""Training on a level from the browser: a small pool of worker PROCESSES ("spawn") running train_agent.
+
+    pool = TrainingPool(max_running=1)
+    job = pool.submit(level_path, out_dir, steps=100_000, on_update=show, on_done=attach)
+    pool.position(job)      # 0 while running, 1.. while queued
+    pool.cancel(job)
+
+Why processes: a training run keeps a core busy for minutes and holds the interpreter lock in its Python
+parts; in a thread it would starve the play loop. "spawn" (not fork) because JAX must not be forked once it has
+initialised (the server has). Workers run niced, so play stays responsive on a small machine.
+
+Runs beyond `max_running` wait in a FIFO queue. Each running job has a supervisor thread that reads the
+worker's messages ("progress" dicts, then "done" or "error"), calls `on_update(job)` after each batch of
+progress and `on_done(job)` once at the end (state "done", "failed" or "cancelled"), then starts the next
+queued job. Cancelling a running job terminates its process at once (nothing of a cancelled run is kept; the
+first jitted chunk can take a minute to compile, and `should_stop` is only polled between chunks).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import logging
+import multiprocessing
+import os
+import queue as queue_module
+import shutil
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+WORKER_NICE = 5  # training yields the CPU to the play loop
+POLL_S = 0.2  # how often a supervisor checks its worker when no message comes
+
+
+def train_worker(level_path: str, out_dir: str, steps: int, messages, options: dict) -> None:
+    """The worker process: train_agent on the level, reporting progress; runs in a fresh ("spawn") interpreter."""
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:
+        pass
+    try:
+        import dataclasses as dc
+
+        from kinetix.agents.ppo import TrainConfig
+        from kinetix.agents.train import train_agent
+
+        config = dc.replace(TrainConfig(), **options.get("config", {}))
+        summary = train_agent(level_path, out_dir, steps=steps, config=config, seed=int(options.get("seed", 0)),
+                              init=options.get("init"), progress=lambda m: messages.put(("progress", m)))
+        last = summary["metrics"][-1] if summary["metrics"] else {}
+        messages.put(("done", {"steps": summary["steps"], "solve_rate": last.get("solve_rate"),
+                               "mean_return": last.get("mean_return")}))
+    except BaseException as error:  # everything goes back to the server as a message, with its type
+        messages.put(("error", f"{type(error).__name__}: {error}"))
+
+
+@dataclasses.dataclass(eq=False)
+class TrainingJob:
+    id: int
+    level_path: Path
+    out_dir: Path
+    steps: int
+    options: dict
+    on_update: Callable[[TrainingJob], None] | None = None
+    on_done: Callable[[TrainingJob], None] | None = None
+    state: str = "queued"  # "queued" | "running" | "done" | "failed" | "cancelled"
+    progress: list[dict] = dataclasses.field(default_factory=list)
+    result: dict | None = None  # the worker's "done" summary: steps, solve_rate, mean_return
+    error: str | None = None
+    process: object = None
+    settled: threading.Event = dataclasses.field(default_factory=threading.Event)  # set once on_done has run
+    _cancel: threading.Event = dataclasses.field(default_factory=threading.Event)
+
+    @property
+    def finished(self) -> bool:
+        return self.state in ("done", "failed", "cancelled")
+
+    @property
+    def fraction(self) -> float:
+        """How far the run is, 0..1 (env steps over planned steps)."""
+        if self.state == "done":
+            return 1.0
+        if not self.progress:
+            return 0.0
+        last = self.progress[-1]
+        return min(1.0, float(last["env_steps"]) / max(float(last.get("total_steps") or self.steps), 1.0))
+
+
+class TrainingPool:
+    def __init__(self, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn"):
+        if max_running < 1:
+            raise ValueError(f"at least one training run must be allowed, got {max_running}")
+        self.max_running = max_running
+        self.worker = worker
+        self._mp = multiprocessing.get_context(context)
+        self._lock = threading.Lock()
+        self._queued: list[TrainingJob] = []
+        self._running: list[TrainingJob] = []
+        self._ids = itertools.count(1)
+        self._closed = False
+
+    def submit(self, level_path: str | os.PathLike, out_dir: str | os.PathLike, *, steps: int,
+               options: dict | None = None, on_update: Callable[[TrainingJob], None] | None = None,
+               on_done: Callable[[TrainingJob], None] | None = None) -> TrainingJob:
+        """Queue a run; it starts now if fewer than `max_running` runs are going."""
+        if steps < 1:
+            raise ValueError(f"steps must be positive, got {steps}")
+        job = TrainingJob(next(self._ids), Path(level_path), Path(out_dir), int(steps), dict(options or {}),
+                          on_update, on_done)
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("the training pool is shut down")
+            self._queued.append(job)
+        self._start_next()
+        return job
+
+    def position(self, job: TrainingJob) -> int:
+        """0 while running (or finished), else the job's place in the queue (1 = next to start)."""
+        with self._lock:
+            return self._queued.index(job) + 1 if job in self._queued else 0
+
+    def jobs(self) -> list[TrainingJob]:
+        with self._lock:
+            return self._running + self._queued
+
+    def cancel(self, job: TrainingJob) -> None:
+        """Stop a run: a queued one never starts, a running one's process is terminated."""
+        with self._lock:
+            if job in self._queued:
+                self._queued.remove(job)
+                job.state = "cancelled"
+                queued = True
+            else:
+                queued = False
+                job._cancel.set()
+                process = job.process
+        if queued:
+            self._finish(job)
+            self._notify_queued()
+            return
+        if process is not None and process.is_alive():
+            process.terminate()
+
+    def close(self) -> None:
+        """Cancel everything and wait for the workers to exit (server shutdown)."""
+        with self._lock:
+            self._closed = True
+            jobs = self._running + self._queued
+        for job in jobs:
+            self.cancel(job)
+        for job in jobs:
+            if job.process is not None:
+                job.process.join(timeout=10)
+
+    # ------------------------------------------------------------------ internals
+
+    def _start_next(self) -> None:
+        while True:
+            with self._lock:
+                if self._closed or not self._queued or len(self._running) >= self.max_running:
+                    return
+                job = self._queued.pop(0)
+                self._running.append(job)
+                job.state = "running"
+            job.out_dir.mkdir(parents=True, exist_ok=True)
+            messages = self._mp.Queue()
+            job.process = self._mp.Process(target=self.worker, name=f"kinetix-train-{job.id}", daemon=True,
+                                           args=(str(job.level_path), str(job.out_dir), job.steps, messages,
+                                                 job.options))
+            try:
+                job.process.start()
+            except Exception as error:
+                log.exception("could not start a training worker")
+                job.state, job.error = "failed", f"could not start the worker: {error}"
+                with self._lock:
+                    self._running.remove(job)
+                self._finish(job)
+                continue
+            threading.Thread(target=self._supervise, args=(job, messages), name=f"kinetix-train-{job.id}",
+                             daemon=True).start()
+            self._notify(job)
+            self._notify_queued()
+
+    def _notify_queued(self) -> None:
+        """The queued jobs moved up: tell them their new positions."""
+        with self._lock:
+            queued = list(self._queued)
+        for other in queued:
+            self._notify(other)
+
+    def _supervise(self, job: TrainingJob, messages) -> None:
+        process = job.process
+        while True:
+            try:
+                kind, body = messages.get(timeout=POLL_S)
+            except queue_module.Empty:
+                if job._cancel.is_set() or not process.is_alive():
+                    break
+                continue
+            except (EOFError, OSError):  # the worker died mid-message
+                break
+            if kind == "progress":
+                job.progress.append(body)
+                if messages.empty():  # a chunk's updates arrive together: one GUI update per batch
+                    self._notify(job)
+            elif kind == "done":
+                job.result = body
+                break
+            elif kind == "error":
+                job.error = body
+                break
+        process.join(timeout=30)
+        if process.is_alive():
+            process.kill()
+            process.join(timeout=5)
+        if job._cancel.is_set():
+            job.state = "cancelled"
+            shutil.rmtree(job.out_dir, ignore_errors=True)  # a cancelled run keeps nothing
+        elif job.result is not None:
+            job.state = "done"
+        else:
+            job.state = "failed"
+            job.error = job.error or f"the training worker exited with code {process.exitcode}"
+        with self._lock:
+            if job in self._running:
+                self._running.remove(job)
+        self._finish(job)
+        self._start_next()
+
+    def _notify(self, job: TrainingJob) -> None:
+        if job.on_update is not None:
+            try:
+                job.on_update(job)
+            except Exception:
+                log.exception("training progress callback failed")
+
+    def _finish(self, job: TrainingJob) -> None:
+        try:
+            if job.on_done is not None:
+                job.on_done(job)
+        except Exception:
+            log.exception("training completion callback failed")
+        finally:
+            job.settled.set()

@@ -1,0 +1,70 @@
+"""Gallery migration 3 (level_agents) and server.gallery.agents.LevelAgents: an old gallery upgrades with its
+data intact, specialists attach only with a real checkpoint inside the agents dir, and are listed newest first."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from sqlalchemy import create_engine, text
+
+from server.gallery import migrations
+from server.gallery.agents import LevelAgents
+from server.gallery.store import Invalid, NotFound, Store
+from tests.gallery.conftest import level_doc
+
+
+def _v2_database(url: str) -> None:
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        assert migrations.migrate(conn, target=2) == 2
+        conn.execute(text("INSERT INTO levels VALUES ('old', 'old level', '', NULL, 1, 1, NULL, 'm', :doc, :png)"),
+                     {"doc": json.dumps(level_doc()), "png": b"\x89PNG"})
+        conn.execute(text("INSERT INTO plays (level_id, kind, solved, steps, seconds, created) "
+                          "VALUES ('old', 'agent', TRUE, 10, 2.0, 1)"))
+    with engine.connect() as conn:
+        tables = conn.dialect.get_table_names(conn)
+    assert "level_agents" not in tables  # really the schema before migration 3
+    engine.dispose()
+
+
+def _checkpoint(agents_dir, run: str) -> None:
+    (agents_dir / run / "checkpoint").mkdir(parents=True)
+    (agents_dir / run / "checkpoint" / "config.json").write_text("{}")
+
+
+def test_a_version_2_gallery_upgrades_to_3_and_keeps_its_data(db_url, tmp_path):
+    _v2_database(db_url)
+    store = Store(db_url, seed_dir=None, recordings_dir=tmp_path / "recordings")
+    assert store.schema_version == migrations.LATEST >= 3
+    assert store.get_level("old")["stats"]["agent_solved"] == 1
+    agents = LevelAgents(store, tmp_path / "agents")
+    _checkpoint(tmp_path / "agents", "run-1")
+    _checkpoint(tmp_path / "agents", "run-2")
+    first = agents.attach("old", "run-1", steps=2048, solve_rate=0.5, mean_return=0.1)
+    second = agents.attach("old", "run-2", steps=4096, name="better")
+    listed = agents.list("old")
+    assert [row["id"] for row in listed] == [second, first], "newest first"
+    assert listed[0]["name"] == "better" and listed[0]["steps"] == 4096 and listed[0]["solve_rate"] is None
+    assert listed[1]["path"] == tmp_path / "agents" / "run-1" / "checkpoint"
+    store.delete_level("old", None, admin=True)  # a deleted level takes its specialists' rows with it
+    assert agents.list("old") == []
+    store.close()
+
+
+def test_attach_refuses_bad_runs_and_lists_only_existing_checkpoints(store, tmp_path):
+    level_id, _ = store.create_level("level", level_doc())
+    agents = LevelAgents(store, tmp_path / "agents")
+    with pytest.raises(Invalid, match="no checkpoint"):
+        agents.attach(level_id, "missing", steps=1)
+    for bad in ("../escape", "a/b", "", ".hidden"):
+        with pytest.raises(Invalid, match="plain directory name"):
+            agents.attach(level_id, bad, steps=1)
+    _checkpoint(tmp_path / "agents", "run")
+    with pytest.raises(NotFound):
+        agents.attach("nolevel", "run", steps=1)
+    agents.attach(level_id, "run", steps=1)
+    assert len(agents.list(level_id)) == 1
+    (tmp_path / "agents" / "run" / "checkpoint" / "config.json").unlink()
+    (tmp_path / "agents" / "run" / "checkpoint").rmdir()
+    assert agents.list(level_id) == [], "a row whose checkpoint is gone is not offered"

@@ -1,0 +1,353 @@
+"""Agents in the browser, through the headless viser client: Watch agent (button and gallery link), the HUD and
+overlay, Race the agent (deterministic stand-in agents), Train on this level with a cheap fake worker (queue,
+progress, cancel, attach), and one slow real training that attaches a specialist Watch agent then plays."""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from fake_editor import falling_win_spec
+from fake_training import fake_train_worker
+from viser_client import KeysSocket, session_nonce
+
+from kinetix.agents.policy import Policy
+from kinetix.formats import ThrusterSpec, build
+from kinetix.levels import to_document
+from server.agent_play import AgentRunner, _overlay_box, action_text
+from server.agent_tab import BEST, NEWEST, AgentLink
+from server.gallery.tab import GalleryLink
+from tests.server.conftest import running_app
+
+FAKE_TRAINING = {"release": "unset"}  # replaced per test (the fake worker waits for this file)
+
+
+@pytest.fixture(scope="module")
+def app(tmp_path_factory):
+    data = tmp_path_factory.mktemp("data")
+    with running_app(gallery=True, data=data, warm_sizes=("m",), max_sessions=6, train_worker=fake_train_worker,
+                     train_options=FAKE_TRAINING) as app:
+        yield app
+
+
+def _wait(predicate, timeout=60.0):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not reached")
+        time.sleep(0.02)
+
+
+def _session(app, client):
+    nonce = session_nonce(client)
+    _wait(lambda: app.manager.session_by_nonce(nonce) is not None)
+    return app.manager.session_by_nonce(nonce), nonce
+
+
+def _thruster_fall_document() -> dict:
+    """falling_win with a sideways thruster (binding 0) on the ball: doing nothing solves it at step 9; firing the
+    thruster from the start makes the ball miss the goal until the time limit."""
+    spec = falling_win_spec()
+    ball = next(i for i, body in enumerate(spec.bodies) if body.path == "ball")
+    spec.thrusters.append(ThrusterSpec(path="push", body=ball, anchor=(0.0, 0.0), angle=0.0, power=1.0, binding=0))
+    return to_document(build(spec))
+
+
+def _thrusting_policy() -> Policy:
+    """A stand-in agent that always fires thruster 0 (value estimate 0.5)."""
+    action = jnp.array([0, 0, 0, 0, 1, 0], jnp.int32)
+    return Policy("thrust", "multi_discrete", None, lambda params, key, obs: (action, jnp.float32(0.5)),
+                  signature=("test-thrust",))
+
+
+def _status(client) -> str:
+    texts = [e.get("_markdown", "") for e in client.gui().values() if e["type"] == "GuiMarkdownMessage"]
+    return "\n".join(texts)
+
+
+def test_watch_agent_from_the_gallery_link_plays_pushes_frames_and_records_an_agent_play(app, make_client):
+    level_id, token = app.store.create_level("falling win", to_document(build(falling_win_spec())))
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    start = client.count()
+    keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=agent", token=token)
+    try:
+        _wait(lambda: session.gallery_id == level_id)
+        _wait(lambda: session.mode == "ended", timeout=180)  # the first watch may compile the general agent
+        assert session._result == "solved"
+        assert session.player == "agent:general"
+        _wait(lambda: app.store.stats(level_id)["agent_plays"] == 1)
+        stats = app.store.stats(level_id)
+        assert stats["agent_solved"] == 1 and stats["human_plays"] == 0
+        # A frame per agent step (9 steps; viser may drop a frame superseded before it was sent): the play was
+        # rendered, not just simulated.
+        _wait(lambda: len(client.frames(start)) >= 6)
+    finally:
+        keys.close()
+
+
+def test_the_watch_agent_button_shows_actions_per_binding_and_the_value(app, make_client):
+    client = make_client(app)
+    session, _ = _session(app, client)
+    session.open_level(json.dumps(_thruster_fall_document()).encode(), "thrust.json")
+    start = client.count()
+    client.click_button("Watch agent")
+    _wait(lambda: session.controller is not None and session.controller.runner.action is not None, timeout=180)
+    hud = session.hud()
+    # e.g. "PLAY  agent:general  step 3  0.10 s  M0 0 M1 + M2 - M3 0 T0 on T1 off  V +0.17"
+    assert re.search(r"M0 [0+-] M1 [0+-] M2 [0+-] M3 [0+-] T0 (on|off) T1 (on|off)  V [+-]\d+\.\d\d", hud), hud
+    assert "agent:general" in hud
+    assert client.wait_frame(start, timeout=30)
+    _wait(lambda: "Watching **general**" in _status(client))
+    session.stop()
+    assert session.controller is None and session.mode == "edit"
+
+
+def test_action_text_and_overlay_box():
+    assert action_text(np.array([0, 1, 2, 0, 1, 0])) == "M0 0 M1 + M2 - M3 0 T0 on T1 off"
+    runner = AgentRunner("noop", build(falling_win_spec()).size)
+    frame = np.full((240, 320, 3), 200, np.uint8)
+    assert np.array_equal(_overlay_box(frame, runner, "agent"), frame), "no action yet: nothing drawn"
+    runner.action, runner.value = np.array([0, 1, 2, 0, 1, 0], np.int32), 0.25
+    drawn = _overlay_box(frame, runner, "agent")
+    changed = np.argwhere((drawn != frame).any(axis=2))
+    assert len(changed) > 0
+    assert changed[:, 0].max() < 2 * 240 // 3 and changed[:, 1].max() < 2 * 320 // 3, "the box sits top left"
+
+
+def _race(app, make_client, *, agent_policy, hold_thruster: bool):
+    level_id, _ = app.store.create_level("race", _thruster_fall_document())
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    GalleryLink(app.store).open(session, level_id)
+    keys = KeysSocket(app.port, nonce)
+    try:
+        with session.lock:  # no step can happen until the human's keys are in place
+            race = app.agents.race(session, policy=agent_policy)
+            session.toggle_pause()
+        if hold_thruster:
+            keys.down("Digit1")
+            _wait(lambda: "Digit1" in session.held)
+        start = client.count()
+        session.toggle_pause()
+        _wait(lambda: race.winner is not None, timeout=120)
+        assert race.recorded.wait(30)
+        _wait(lambda: len(client.frames(start)) > 0)
+        return race, level_id, client, session
+    finally:
+        keys.close()
+
+
+def test_race_human_wins_against_an_agent_that_misses_and_both_plays_are_recorded(app, make_client):
+    race, level_id, client, session = _race(app, make_client, agent_policy=_thrusting_policy(), hold_thruster=False)
+    assert race.winner == "human"
+    assert race.human.result == "solved" and race.human.steps == 9
+    assert race.agent.result is None and race.agent.steps == 9, "the agent stepped in lockstep"
+    stats = app.store.stats(level_id)
+    assert (stats["human_plays"], stats["human_solved"], stats["agent_plays"], stats["agent_solved"]) == (1, 1, 1, 0)
+    _wait(lambda: "You win!" in _status(client))
+    _wait(lambda: session.mode == "ended")
+    frame = session.render()
+    assert frame.shape[1] == client.width, "one frame holds both halves"
+
+
+def test_race_agent_wins_when_the_human_fires_the_thruster(app, make_client):
+    from kinetix.agents.policy import load_policy
+    from server.agent_play import observing_env
+
+    noop = load_policy("noop", observing_env(build(falling_win_spec()).size))
+    race, level_id, client, _ = _race(app, make_client, agent_policy=noop, hold_thruster=True)
+    assert race.winner == "agent"
+    assert race.agent.result == "solved" and race.human.result is None
+    stats = app.store.stats(level_id)
+    assert (stats["human_plays"], stats["human_solved"], stats["agent_plays"], stats["agent_solved"]) == (1, 0, 1, 1)
+    _wait(lambda: "The agent wins!" in _status(client))
+
+
+def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app, make_client, tmp_path):
+    FAKE_TRAINING["release"] = str(tmp_path / "release")
+    level_id, _ = app.store.create_level("train me", to_document(build(falling_win_spec())))
+    first_client, second_client = make_client(app), make_client(app)
+    first, _ = _session(app, first_client)
+    second, _ = _session(app, second_client)
+    GalleryLink(app.store).open(first, level_id)
+    first_job = app.agents.train(first, steps=4000)
+    second_job = app.agents.train(second, steps=4000)  # a new, unsaved level: its specialist lives with the tab
+    assert first_job.state == "running" and second_job.state == "queued"
+    _wait(lambda: "position **1**" in _status(second_client))
+    _wait(lambda: "Training: 3,000 / 4,000 steps" in _status(first_client))
+    _wait(lambda: first_client.find_gui("Training")["visible"])  # the learning curve is shown
+    with pytest.raises(ValueError, match="already training"):
+        app.agents.train(first, steps=4000)
+    (tmp_path / "release").touch()
+    assert first_job.settled.wait(60)  # finished and its specialist attached
+    assert first_job.state == "done"
+    rows = app.agents.level_agents.list(level_id)
+    assert len(rows) == 1 and rows[0]["solve_rate"] == 0.75 and rows[0]["path"].is_dir()
+    assert app.agents.resolve(first, NEWEST)[1] == str(rows[0]["path"])
+    assert app.agents.resolve(first, BEST)[1] == str(rows[0]["path"]), "the default prefers the level's specialist"
+    assert app.agents.resolve(second, BEST) == ("general", "general"), "... and falls back to the general agent"
+    _wait(lambda: "Training done" in _status(first_client))
+    # The second run started once the first finished; it finishes at once (the release file exists) and stays
+    # with its tab, since its level is not in the gallery.
+    assert second_job.settled.wait(60)
+    assert second_job.state == "done"
+    assert app.agents.specialists(second)[0][0].startswith("this tab's specialist")
+    assert app.agents.level_agents.list(level_id) == rows
+    # Saving the second tab's level to the gallery attaches its specialist there for good.
+    run_dir = second_job.out_dir
+    saved_id = GalleryLink(app.store).save(second, "saved after training")
+    labels = [label for label, _ in app.agents.specialists(second)]
+    assert not any(label.startswith("this tab's") for label in labels)
+    adopted = app.agents.level_agents.list(saved_id)
+    assert len(adopted) == 1 and adopted[0]["path"] == run_dir / "checkpoint" and adopted[0]["solve_rate"] == 0.75
+    second_client.close()
+    _wait(lambda tab=second: tab.closed)
+    del second
+    import gc
+
+    gc.collect()
+    assert run_dir.is_dir(), "an adopted specialist outlives its tab"
+
+
+def test_cancel_training_from_the_tab(app, make_client, tmp_path):
+    FAKE_TRAINING["release"] = str(tmp_path / "never")
+    client = make_client(app)
+    session, _ = _session(app, client)
+    client.click_button("Train on this level")
+    _wait(lambda: app.agents.tab(session).job is not None and len(app.agents.tab(session).job.progress) == 3)
+    job = app.agents.tab(session).job
+    client.click_button("Cancel training")
+    assert job.settled.wait(60)
+    assert job.state == "cancelled" and not job.out_dir.exists()
+    _wait(lambda: "Training cancelled." in _status(client))
+
+
+def test_watch_refuses_a_missing_specialist_with_a_message(app, make_client):
+    client = make_client(app)
+    session, _ = _session(app, client)
+    app.agents.tab(session).choice.value = NEWEST
+    client.click_button("Watch agent")
+    _wait(lambda: "has no specialist yet" in _status(client))
+    assert session.mode == "edit"
+
+
+@pytest.mark.slow
+def test_a_tiny_real_training_attaches_a_specialist_that_watch_agent_plays(app, make_client):
+    from server.training import TrainingPool
+
+    level_id, _ = app.store.create_level("tiny training", to_document(build(falling_win_spec())))
+    client = make_client(app)
+    session, _ = _session(app, client)
+    GalleryLink(app.store).open(session, level_id)
+    pool = TrainingPool(max_running=1)  # the real worker: kinetix.agents.train_agent in a spawned process
+    link = AgentLink(store=app.store, agents_dir=app.agents.agents_dir, pool=pool,
+                     train_options={"config": {"num_envs": 8, "num_steps": 32, "updates_per_call": 2}})
+    try:
+        job = link.train(session, steps=2048)
+        assert job.settled.wait(900)
+        assert job.state == "done", job.error
+        assert len(job.progress) == 8 and job.progress[-1]["env_steps"] == 2048
+        assert [p["env_steps"] for p in job.progress] == sorted(p["env_steps"] for p in job.progress)
+        rows = link.level_agents.list(level_id)
+        assert len(rows) == 1 and rows[0]["steps"] == 2048
+        assert str(rows[0]["path"]).startswith(str(app.agents.agents_dir))
+        controller = link.watch(session, NEWEST)
+        assert controller.runner.spec == str(rows[0]["path"])
+        _wait(lambda: session.mode == "ended", timeout=120)
+        _wait(lambda: app.store.stats(level_id)["agent_plays"] == 1)
+    finally:
+        pool.close()
+
+
+def test_warm_up_compiles_the_agent_function_for_each_size_class_once():
+    from server import agent_play
+
+    before = {k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")}
+    agent_play.warm_in_background(("s",), spec="noop").join(timeout=300)
+    warmed = {k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")}
+    assert any(k[1] == "s" for k in warmed)
+    runner = AgentRunner("noop", build(falling_win_spec()).size)  # another runner of the same agent and size ...
+    agent_play.warm_in_background(("m",), spec="noop").join(timeout=300)
+    assert runner._fn is agent_play.step_fn(runner.policy, build(falling_win_spec()).size)  # ... shares its function
+    assert len({k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")} - before) <= 2
+
+
+def test_the_gallery_cards_watch_agent_link_opens_agent_mode():
+    from pathlib import Path
+
+    static = Path(__file__).resolve().parents[2] / "static"
+    card = (static / "gallery.html").read_text()
+    watch = next(line for line in card.splitlines() if "watch" in line)
+    assert "<a " in watch and "disabled" not in watch
+    assert '.watch").href = `/?level=${id}&mode=agent`' in (static / "gallery.js").read_text()
+
+
+def test_training_refuses_bad_step_counts(app, make_client):
+    client = make_client(app)
+    session, _ = _session(app, client)
+    for steps in (0, 10**9):
+        with pytest.raises(ValueError, match="training steps must be between"):
+            app.agents.train(session, steps=steps)
+    assert app.agents.tab(session).job is None
+
+
+def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tmp_path):
+    FAKE_TRAINING["release"] = str(tmp_path / "release")
+    level_id, _ = app.store.create_level("keeps training", to_document(build(falling_win_spec())))
+    keeper, leaver = make_client(app), make_client(app)
+    kept, _ = _session(app, keeper)
+    left, _ = _session(app, leaver)
+    GalleryLink(app.store).open(kept, level_id)
+    kept_job = app.agents.train(kept, steps=4000)
+    left_job = app.agents.train(left, steps=4000)  # unsaved level, queued behind the first
+    assert left_job.state == "queued"
+    leaver.close()
+    _wait(lambda: left.closed)
+    (tmp_path / "release").touch()
+    assert kept_job.settled.wait(60) and left_job.settled.wait(60)
+    assert kept_job.state == "done", "a gallery level's run goes on: its specialist is attached for everyone"
+    assert left_job.state == "cancelled" and not left_job.out_dir.exists()
+    assert len(app.agents.level_agents.list(level_id)) == 1
+
+
+def test_a_tab_specialist_is_deleted_with_its_tab(app, make_client, tmp_path):
+    import gc
+
+    FAKE_TRAINING["release"] = str(tmp_path / "release")
+    (tmp_path / "release").touch()
+    client = make_client(app)
+    session, _ = _session(app, client)
+    job = app.agents.train(session, steps=4000)
+    assert job.settled.wait(60)
+    assert job.state == "done" and app.agents.specialists(session)[0][1] == str(job.out_dir / "checkpoint")
+    client.close()
+    _wait(lambda tab=session: tab.closed)
+    del session
+    deadline = time.monotonic() + 30
+    while job.out_dir.exists() and time.monotonic() < deadline:
+        gc.collect()
+        time.sleep(0.1)
+    assert not job.out_dir.exists(), "nothing outlives the tab that owned it"
+
+
+def test_a_specialist_attaches_to_a_level_whose_id_starts_with_a_dash(app, make_client, tmp_path):
+    from sqlalchemy import text
+
+    FAKE_TRAINING["release"] = str(tmp_path / "release")
+    (tmp_path / "release").touch()
+    source, _ = app.store.create_level("dash", to_document(build(falling_win_spec())))
+    with app.store._write() as conn:  # gallery ids are url-safe base64: '-' and '_' can come first
+        conn.execute(text("INSERT INTO levels (id, name, description, author_id, created, updated, parent_id, size, "
+                          "level_json, thumbnail) SELECT '-dash-first', name, description, author_id, created, "
+                          "updated, NULL, size, level_json, thumbnail FROM levels WHERE id = :src"), {"src": source})
+    client = make_client(app)
+    session, _ = _session(app, client)
+    GalleryLink(app.store).open(session, "-dash-first")
+    job = app.agents.train(session, steps=4000)
+    assert job.settled.wait(60) and job.state == "done"
+    assert len(app.agents.level_agents.list("-dash-first")) == 1

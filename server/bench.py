@@ -69,11 +69,15 @@ def _latency(app, chromium: str, samples: int) -> list[float]:
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--use-gl=swiftshader"])
-        page = browser.new_page(viewport={"width": 640, "height": 480})
+        # The control panel (about 390 px) is docked beside the canvas: this leaves a canvas of about 640x480.
+        page = browser.new_page(viewport={"width": 1030, "height": 480})
         page.add_init_script(ACK_SCRIPT)
         page.goto(app.url)
         page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
-        page.mouse.click(320, 240)  # focus the canvas (a click on an empty canvas edits nothing with select)
+        box = page.evaluate("() => { const r = [...document.querySelectorAll('canvas')].map(c => "
+                            "c.getBoundingClientRect()).sort((a, b) => b.width * b.height - a.width * a.height)[0];"
+                            " return [r.x + r.width / 2, r.y + r.height / 2]; }")
+        page.mouse.click(*box)  # focus the canvas (a click on an empty canvas edits nothing with select)
         page.keyboard.press("Space")
         page.wait_for_timeout(500)
         latencies = []

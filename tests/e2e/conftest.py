@@ -43,6 +43,15 @@ def browser():
         browser.close()
 
 
+def canvas_box(page) -> dict:
+    """The page box of viser's 3D canvas (the largest canvas; the control panel is docked beside it)."""
+    return page.evaluate("""() => {
+        const c = [...document.querySelectorAll('canvas')].map(e => e.getBoundingClientRect())
+            .sort((a, b) => b.width * b.height - a.width * a.height)[0];
+        return {x: c.x, y: c.y, width: c.width, height: c.height};
+    }""")
+
+
 class Tab:
     """A page on the server that records every request, to check all traffic stays on 127.0.0.1."""
 
@@ -60,12 +69,12 @@ class Tab:
         assert self.session is not None
 
     def xy(self, x: float, y: float) -> tuple[float, float]:
-        """Page pixel of world point (x, y): the frame is letterboxed into the full-window canvas."""
+        """Page pixel of world point (x, y): the frame is letterboxed into the canvas (left of the docked panel)."""
         from server.draw import View
 
-        size = self.page.viewport_size
-        u, v = View(size["width"], size["height"]).to_screen(x, y)
-        return u * size["width"], v * size["height"]
+        box = canvas_box(self.page)
+        u, v = View(round(box["width"]), round(box["height"])).to_screen(x, y)
+        return box["x"] + u * box["width"], box["y"] + v * box["height"]
 
     def drag(self, a: tuple[float, float], b: tuple[float, float], steps: int = 6) -> None:
         """A left-button drag between two world points."""

@@ -13,7 +13,7 @@ from PIL import Image
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab
+from tests.e2e.conftest import Tab, canvas_box
 from tests.server.conftest import running_app
 from tests.server.fake_editor import falling_win_spec
 
@@ -60,10 +60,10 @@ def test_watch_agent_from_a_gallery_card_and_race_from_the_agent_folder(browser,
         assert race.winner == "tie"  # nobody presses anything and the ball falls onto the goal on both sides
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1 and app.store.stats(level_id)["agent_plays"] == 2)
         gallery.wait_for_timeout(500)
-        size = gallery.viewport_size
-        shot = np.asarray(Image.open(io.BytesIO(gallery.screenshot(
-            clip={"x": 0, "y": 0, "width": size["width"], "height": size["height"]}, timeout=60_000))).convert("RGB"))
-        h, w = size["height"], size["width"]
+        # The canvas is the page's largest element left of the docked panel: look at its middle.
+        box = canvas_box(gallery)
+        shot = np.asarray(Image.open(io.BytesIO(gallery.screenshot(clip=box, timeout=60_000))).convert("RGB"))
+        h, w = shot.shape[:2]
         middle = shot[h // 2 - 50: h // 2 + 50, w // 2 - 6: w // 2 + 6].mean(axis=2)
         assert (middle.min(axis=1) < 100).all(), "the divider between the two halves is on the canvas"
         quarter = shot[h // 2 - 50: h // 2 + 50, w // 4 - 6: w // 4 + 6].mean(axis=2)

@@ -40,7 +40,7 @@ def _pixels(png: bytes) -> np.ndarray:
 
 
 def test_draw_rectangle_and_circle_join_with_a_motor_and_play(browser, app):
-    tab = Tab(browser, app, 1280, 800)  # the panel floats on the right; the left half of the world stays clear
+    tab = Tab(browser, app, 1280, 800)  # the panel is docked on the right, beside the canvas
     try:
         page, session = tab.page, tab.session
         editor = session.editor

@@ -273,6 +273,23 @@ def test_cli_replay_exit_codes(recorded, tmp_path, capsys):
     assert "not an MCAP file" in capsys.readouterr().err
 
 
+def test_cli_replay_writes_an_mp4(recorded, tmp_path, capsys):
+    import imageio.v3 as iio
+
+    from kinetix.cli import main
+    from kinetix.recording import read_recording
+
+    out = tmp_path / "u.mp4"
+    assert main(["replay", str(recorded["unicycle"]), "--mp4", str(out), "--resolution", "64"]) == 0
+    assert "matches" in capsys.readouterr().out
+    frames = iio.imread(out)  # decoded back through ffmpeg: a real H.264 video, not just a file
+    recording = read_recording(recorded["unicycle"])
+    assert frames.shape[1:] == (64, 64, 3)
+    assert 2 <= frames.shape[0] <= recording.num_steps + 1
+    assert frames.std(axis=0).max() > 0  # the picture changes over the play
+    assert not list(tmp_path.glob("*.part*"))  # written under a temporary name, then renamed
+
+
 def test_cli_play_records_noop(tmp_path, capsys):
     from kinetix.cli import main
 

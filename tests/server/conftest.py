@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,24 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))  # viser_client, fake_editor
 
 LEVELS = Path(__file__).resolve().parents[2] / "levels"
+
+
+def wait_until(predicate, timeout: float = 20.0) -> None:
+    """Poll `predicate` every 20 ms; TimeoutError after `timeout` seconds (sessions run on other threads)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not reached")
+        time.sleep(0.02)
+
+
+def session_of(app, client, timeout: float = 20.0):
+    """(the Session, its nonce) of a headless client's tab, once the server has registered it."""
+    from viser_client import session_nonce
+
+    nonce = session_nonce(client)
+    wait_until(lambda: app.manager.session_by_nonce(nonce) is not None, timeout)
+    return app.manager.session_by_nonce(nonce), nonce
 
 
 @contextlib.contextmanager

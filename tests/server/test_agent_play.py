@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from fake_editor import falling_win_spec
 from fake_training import fake_train_worker
-from viser_client import KeysSocket, session_nonce
+from viser_client import KeysSocket
 
 from kinetix.agents.policy import Policy
 from kinetix.formats import ThrusterSpec, build
@@ -21,7 +21,7 @@ from kinetix.levels import to_document
 from server.agent_play import AgentRunner, _overlay_box, action_text
 from server.agent_tab import BEST, NEWEST, AgentLink
 from server.gallery.tab import GalleryLink
-from tests.server.conftest import running_app
+from tests.server.conftest import running_app, session_of, wait_until
 
 FAKE_TRAINING = {"release": "unset"}  # replaced per test (the fake worker waits for this file)
 
@@ -35,17 +35,11 @@ def app(tmp_path_factory):
 
 
 def _wait(predicate, timeout=60.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError("condition not reached")
-        time.sleep(0.02)
+    wait_until(predicate, timeout)
 
 
 def _session(app, client):
-    nonce = session_nonce(client)
-    _wait(lambda: app.manager.session_by_nonce(nonce) is not None)
-    return app.manager.session_by_nonce(nonce), nonce
+    return session_of(app, client, 60.0)
 
 
 def _thruster_fall_document() -> dict:

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import json
-import time
 
 import pytest
 from fake_editor import falling_win_spec
-from viser_client import KeysSocket, session_nonce
+from viser_client import KeysSocket
 
 from kinetix.formats import build
 from kinetix.levels import to_document
 from server.gallery.tab import GalleryLink
-from tests.server.conftest import running_app
+from tests.server.conftest import running_app, session_of, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -22,17 +21,11 @@ def app(tmp_path_factory):
 
 
 def _wait(predicate, timeout=20.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError("condition not reached")
-        time.sleep(0.02)
+    wait_until(predicate, timeout)
 
 
 def _session(app, client):
-    nonce = session_nonce(client)
-    _wait(lambda: app.manager.session_by_nonce(nonce) is not None)
-    return app.manager.session_by_nonce(nonce), nonce
+    return session_of(app, client, 20.0)
 
 
 def _html(client) -> list[str]:

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from fake_editor import falling_win_spec
 from PIL import Image
-from viser_client import KeysSocket, session_nonce
+from viser_client import KeysSocket
 
 from kinetix.formats import build
 from kinetix.levels import to_document
 from kinetix.recording import read_recording, recorded_level, verify
 from server.session import Controller
-from tests.server.conftest import LEVELS, running_app
+from tests.server.conftest import LEVELS, running_app, session_of, wait_until
 
 CAR = LEVELS / "car_ramp.json"
 
@@ -33,17 +33,11 @@ def app(tmp_path_factory):
 
 
 def _wait(predicate, timeout=30.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError("condition not reached")
-        time.sleep(0.02)
+    wait_until(predicate, timeout)
 
 
 def _session(app, client):
-    nonce = session_nonce(client)
-    _wait(lambda: app.manager.session_by_nonce(nonce) is not None)
-    return app.manager.session_by_nonce(nonce), nonce
+    return session_of(app, client, 30.0)
 
 
 def _download(client, start: int = 0, timeout: float = 30.0) -> tuple[str, bytes]:

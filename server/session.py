@@ -400,9 +400,7 @@ class Session:
                 if replay is not None:
                     replay.stop()
             elif self.mode != "ended":  # stopped by the player before the episode ended
-                stepper, _, params = self._play
-                self.manager.notify("play_ended", self, "stopped", self._steps,
-                                    self._steps * float(params.sim.dt) * stepper.frame_skip)
+                self._notify_stopped()
             self.mode = "edit"
             self._play = None
             self.controller = None
@@ -410,6 +408,12 @@ class Session:
             self._set_buttons()
             self.manager.scheduler.wake()
             self.refresh(force=True)
+
+    def _notify_stopped(self) -> None:
+        """Tell the listeners the running play was cut short (Stop, a new play, the tab going away)."""
+        stepper, _, params = self._play
+        self.manager.notify("play_ended", self, "stopped", self._steps,
+                            self._steps * float(params.sim.dt) * stepper.frame_skip)
 
     def play_again(self) -> None:
         with self.lock:
@@ -619,9 +623,7 @@ class Session:
         """Stop the play loop and drop references (the tab is gone)."""
         with self.lock:
             if self.mode in ("play", "paused") and self._play is not None:  # cut short: listeners finish it
-                stepper, _, params = self._play
-                self.manager.notify("play_ended", self, "stopped", self._steps,
-                                    self._steps * float(params.sim.dt) * stepper.frame_skip)
+                self._notify_stopped()
             self.closed = True
             if self.replay is not None:
                 self.replay.stop()

@@ -5,7 +5,6 @@ button splits the canvas into the human's and the agent's halves."""
 from __future__ import annotations
 
 import io
-import time
 
 import numpy as np
 import pytest
@@ -14,7 +13,7 @@ from PIL import Image
 from kinetix.formats import build
 from kinetix.levels import to_document
 from tests.e2e.conftest import Tab, canvas_box
-from tests.server.conftest import running_app
+from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -27,10 +26,7 @@ def app(tmp_path_factory):
 
 
 def _wait(predicate, timeout=60.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.05)
+    wait_until(predicate, timeout)
 
 
 def test_watch_agent_from_a_gallery_card_and_race_from_the_agent_folder(browser, app):

@@ -11,7 +11,7 @@ from PIL import Image
 
 from server.play import action_from_keys
 from tests.e2e.conftest import LEVELS, Tab
-from tests.server.conftest import running_app
+from tests.server.conftest import running_app, wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -29,10 +29,7 @@ def car_app():
 
 
 def _wait(predicate, timeout=20.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.02)
+    wait_until(predicate, timeout)
 
 
 def _pixels(png: bytes) -> np.ndarray:

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import time
 
 import pytest
 
 from kinetix.formats import build
 from kinetix.levels import to_document
 from tests.e2e.conftest import Tab
-from tests.server.conftest import running_app
+from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -26,10 +25,7 @@ def app(tmp_path_factory):
 
 
 def _wait(predicate, timeout=30.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.05)
+    wait_until(predicate, timeout)
 
 
 def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):

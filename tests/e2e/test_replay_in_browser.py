@@ -11,7 +11,7 @@ from viser_client import KeysSocket, ViserTestClient, session_nonce
 from kinetix.formats import build
 from kinetix.levels import to_document
 from tests.e2e.conftest import Tab
-from tests.server.conftest import running_app
+from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -25,10 +25,7 @@ def app(tmp_path_factory):
 
 
 def _wait(predicate, timeout=30.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.05)
+    wait_until(predicate, timeout)
 
 
 def _solve(app, level_id: str) -> None:

@@ -11,14 +11,20 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 
 from kinetix.level import LevelFile
 from kinetix.recording import schema
 from kinetix.recording.errors import RecordingError
 
 MAGIC = b"\x89MCAP0\r\n"
+# Decompressed bytes a recording may hold. A 10-minute play with frames is tens of MB; the bound is what keeps a
+# small upload that inflates to many GB (a compression bomb) from filling the server's memory.
+MAX_UNCOMPRESSED = 1 << 30
 
 
 @dataclasses.dataclass
@@ -102,6 +108,28 @@ def _level_from(level_json: str, npz: bytes | None, name: str) -> LevelFile:
     return dataclasses.replace(level_file, level=jax.tree_util.tree_unflatten(treedef, exact))
 
 
+def _check_chunk_sizes(data: bytes, name: str) -> None:
+    """Refuse, before decompressing anything, chunks that would inflate past MAX_UNCOMPRESSED bytes in all.
+
+    A chunk's declared size bounds what the reader allocates only if the zstd frame agrees with it, so the
+    frame's own content size is checked too; lz4 chunks have no such bound and are refused (we never write them).
+    """
+    limit, total = MAX_UNCOMPRESSED, 0
+    for record in StreamReader(io.BytesIO(data), emit_chunks=True).records:
+        if not isinstance(record, Chunk):
+            continue
+        if record.compression not in ("", "zstd"):
+            raise RecordingError(f"{name} uses {record.compression!r} chunk compression; recordings use zstd")
+        size = record.uncompressed_size
+        if record.compression == "zstd":
+            framed = zstandard.frame_content_size(record.data)
+            if framed > size:
+                raise RecordingError(f"{name} is corrupt: a chunk inflates to {framed} bytes, declared {size}")
+        total += size
+        if total > limit:
+            raise RecordingError(f"{name} is too large: it inflates to more than {limit // 2**20} MB")
+
+
 def read_recording(source: str | os.PathLike | bytes, *, frames: bool = True) -> Recording:
     """Read a whole recording; `frames=False` skips decoding the JPEGs (faster for replay checks and exports)."""
     data, name = _open(source)
@@ -110,6 +138,7 @@ def read_recording(source: str | os.PathLike | bytes, *, frames: bool = True) ->
     if len(data) < 2 * len(MAGIC) or not data.endswith(MAGIC):
         raise RecordingError(f"{name} is truncated: the MCAP file ends before its footer (cut short?)")
     try:
+        _check_chunk_sizes(data, name)
         reader = make_reader(io.BytesIO(data), validate_crcs=True)
         header = reader.get_header()
         if header.profile != schema.PROFILE:

@@ -15,7 +15,9 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from mcap.writer import Writer
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
 
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.levels import load_level
@@ -152,6 +154,36 @@ def test_bad_files_get_clear_errors(recorded, tmp_path):
             read_recording(path)
     with pytest.raises(RecordingError, match="no such file"):
         read_recording(tmp_path / "missing.mcap")
+
+
+def _inflating_mcap(payload: int, compression: CompressionType = CompressionType.ZSTD) -> bytes:
+    """A kinetix-profile MCAP whose one message is `payload` zero bytes: tiny on disk, large once inflated."""
+    buffer = io.BytesIO()
+    writer = Writer(buffer, compression=compression, chunk_size=2 * payload)
+    writer.start(profile="kinetix-recording", library="test")
+    channel = writer.register_channel("/step", "json", writer.register_schema("x", "jsonschema", b"{}"))
+    writer.add_message(channel, 1, bytes(payload), 1)
+    writer.finish()
+    return buffer.getvalue()
+
+
+def test_compression_bombs_are_refused_before_inflating(monkeypatch):
+    from kinetix.recording import reader
+
+    monkeypatch.setattr(reader, "MAX_UNCOMPRESSED", 1 << 20)
+    bomb = _inflating_mcap(8 << 20)
+    assert len(bomb) < 8 << 10  # 8 MB of zeros in a few KB
+    with pytest.raises(RecordingError, match="too large: it inflates to more than 1 MB"):
+        read_recording(bomb)
+    # A chunk that declares a small size but whose zstd frame says otherwise is caught by the frame's own size.
+    small = _inflating_mcap(4 << 10)
+    chunk = next(r for r in StreamReader(io.BytesIO(small), emit_chunks=True).records if isinstance(r, Chunk))
+    # The chunk record comes before its index in the summary, so the first occurrence is the chunk's header.
+    lying = small.replace(chunk.uncompressed_size.to_bytes(8, "little"), (16).to_bytes(8, "little"), 1)
+    with pytest.raises(RecordingError, match=f"inflates to {chunk.uncompressed_size} bytes, declared 16"):
+        read_recording(lying)
+    with pytest.raises(RecordingError, match="'lz4' chunk compression"):
+        read_recording(_inflating_mcap(4 << 10, CompressionType.LZ4))
 
 
 def test_abort_and_exception_leave_nothing(tmp_path):

@@ -134,7 +134,7 @@ def _darker(colour, factor: float = 0.4):
     return tuple(int(c * factor) for c in colour)
 
 
-_STATIC_CACHE: dict = {}  # (view, static-body bytes) -> (2x image, 1x image); static bodies never move in play
+_STATIC_CACHE: dict = {}  # (view, static-body bytes) -> (2x image, 1x array); static bodies never move in play
 _STATIC_CACHE_SIZE = 8
 
 
@@ -158,7 +158,7 @@ def _body_ops(scene: Scene, indices, px, s: float, outline: int) -> list:
     return ops
 
 
-def _static_layer(scene: Scene | None, big: View, px, s: float, outline: int) -> tuple[Image.Image, Image.Image]:
+def _static_layer(scene: Scene | None, big: View, px, s: float, outline: int) -> tuple[Image.Image, np.ndarray]:
     static = np.flatnonzero(scene.active & scene.static) if scene is not None else np.zeros(0, int)
     key: tuple = (big, static.tobytes())
     if scene is not None:
@@ -177,7 +177,9 @@ def _static_layer(scene: Scene | None, big: View, px, s: float, outline: int) ->
             getattr(draw, name)(*args, **kwargs)
     if len(_STATIC_CACHE) >= _STATIC_CACHE_SIZE:
         _STATIC_CACHE.pop(next(iter(_STATIC_CACHE)))
-    _STATIC_CACHE[key] = (image, image.reduce(SUPERSAMPLE))
+    small = np.asarray(image.reduce(SUPERSAMPLE))
+    small.flags.writeable = False  # shared by every frame of this view: frames start from a copy
+    _STATIC_CACHE[key] = (image, small)
     return _STATIC_CACHE[key]
 
 
@@ -187,6 +189,8 @@ def draw_frame(scene: Scene | None, view: View, *, overlay=None, hud: str = "", 
 
     Static bodies are drawn once per view into a cached layer; per frame only the box around the moving
     bodies, joints, thrusters and overlay is drawn at 2x, reduced and pasted, which keeps a frame near 1-2 ms.
+    The frame itself is a numpy array: a Pillow RGB image stores 4 bytes a pixel, so copying the whole frame
+    through Pillow and back cost more than drawing it; only the patch and the rows with text go through Pillow.
     """
     ss = SUPERSAMPLE
     big = View(view.width * ss, view.height * ss, view.world)
@@ -220,11 +224,21 @@ def draw_frame(scene: Scene | None, view: View, *, overlay=None, hud: str = "", 
             draw = ImageDraw.Draw(patch)
             for name, args, kwargs, _ in ops:
                 getattr(draw, name)(*_shift(args, -left, -top), **kwargs)
-            frame.paste(patch.reduce(ss), (left // ss, top // ss))
-    draw = ImageDraw.Draw(frame)
-    _draw_text(draw, view, hud=hud, banner=banner, message=message or getattr(overlay, "message", None),
-               legend=_legend(used_motor, used_thruster) if legend else [])
-    return np.asarray(frame)
+            small = np.asarray(patch.reduce(ss))
+            frame[top // ss:top // ss + small.shape[0], left // ss:left // ss + small.shape[1]] = small
+    message = message or getattr(overlay, "message", None)
+    items = _legend(used_motor, used_thruster) if legend else []
+    if banner or message:  # text anywhere: draw on the whole frame (edit frames and end banners only)
+        rows = (0, view.height)
+    elif hud or items:  # the HUD line and the legend below it
+        oy = int(view.origin[1])
+        rows = (oy, min(view.height, oy + TEXT_TOP + LEGEND_ROW * len(items) + 2))
+    else:
+        return frame
+    strip = Image.fromarray(frame[rows[0]:rows[1]])
+    _draw_text(ImageDraw.Draw(strip), view, hud=hud, banner=banner, message=message, legend=items, top=rows[0])
+    frame[rows[0]:rows[1]] = np.asarray(strip)
+    return frame
 
 
 def _shift(args: tuple, dx: float, dy: float) -> tuple:
@@ -313,28 +327,34 @@ def _item_ops(item: dict, px, s: float, colour, width: int) -> list:
     return []
 
 
+TEXT_TOP = 22  # pixels from the world box's top to the first legend row (the HUD line is above it)
+LEGEND_ROW = 16
+
+
 def _draw_text(draw: ImageDraw.ImageDraw, view: View, *, hud: str, banner: str, message: str | None,
-               legend: list) -> None:
+               legend: list, top: int = 0) -> None:
+    """Text in view coordinates, on an image whose first row is the view's row `top`."""
     font = _font(13)
     ox, oy = view.origin
+    oy -= top
     if hud:
         draw.text((ox + 6, oy + 4), hud, fill=(30, 30, 30), font=font)
-    y = oy + 22
+    y = oy + TEXT_TOP
     for text, colour in legend:
         draw.rectangle([ox + 6, y + 2, ox + 16, y + 12], fill=colour, outline=OUTLINE)
         draw.text((ox + 20, y), text, fill=(30, 30, 30), font=font)
-        y += 16
+        y += LEGEND_ROW
     if message:
-        draw.text((ox + 6, view.height - oy - 20), message, fill=(200, 0, 0), font=font)
+        draw.text((ox + 6, view.height - view.origin[1] - 20 - top), message, fill=(200, 0, 0), font=font)
     if banner:
         big = _font(22)
         lines = banner.split("\n")
         h = 28 * len(lines) + 16
-        top = view.height / 2 - h / 2
-        draw.rectangle([0, top, view.width, top + h], fill=(255, 255, 255), outline=OUTLINE)
+        box_top = view.height / 2 - h / 2 - top
+        draw.rectangle([0, box_top, view.width, box_top + h], fill=(255, 255, 255), outline=OUTLINE)
         for n, line in enumerate(lines):
             w = draw.textlength(line, font=big)
-            draw.text((view.width / 2 - w / 2, top + 8 + 28 * n), line, fill=(20, 20, 20), font=big)
+            draw.text((view.width / 2 - w / 2, box_top + 8 + 28 * n), line, fill=(20, 20, 20), font=big)
 
 
 def encode_jpeg(frame: np.ndarray, quality: int = 85) -> bytes:

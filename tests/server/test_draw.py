@@ -58,3 +58,22 @@ def test_motor_joints_get_a_key_legend():
     with_legend = draw_frame(scene_of(level), view)
     without = draw_frame(scene_of(level), view, legend=False)
     assert (with_legend[20:60, :150] != without[20:60, :150]).any()
+
+
+@pytest.mark.parametrize("size", [(640, 480), (400, 800)])
+def test_hud_drawn_on_its_rows_matches_drawing_on_the_whole_frame(level, size):
+    """Frames draw the HUD on a strip of rows only (for speed); the pixels must equal drawing on the whole frame."""
+    from PIL import Image, ImageDraw
+
+    from server.draw import _draw_text
+
+    view = View(*size)
+    hud = "PLAY  step 120  4.00 s  ArrowRight"
+    frame = draw_frame(scene_of(level), view, hud=hud, legend=False)
+    whole = Image.fromarray(draw_frame(scene_of(level), view, legend=False))
+    _draw_text(ImageDraw.Draw(whole), view, hud=hud, banner="", message=None, legend=[])
+    assert np.array_equal(frame, np.asarray(whole))
+    assert not np.array_equal(frame, draw_frame(scene_of(level), view, legend=False)), "the HUD is drawn at all"
+    corner = frame[0, 0].copy()
+    frame[0, 0] = 255 - corner  # a frame is a fresh array: writing to it must not touch the cached static layer
+    assert np.array_equal(draw_frame(scene_of(level), view, hud=hud, legend=False)[0, 0], corner)

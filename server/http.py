@@ -3,7 +3,8 @@
 viser serves only its own client build and has no hooks for routes, so this FastAPI app (run by uvicorn in
 a background thread, see server.app) is the one URL the user opens:
 
-    GET /            viser's client/build/index.html with `window.__KINETIX__ = {viserPort}` and keys.js injected
+    GET /            viser's client/build/index.html with `window.__KINETIX__ = {viserPort}`, canvas.js and keys.js
+                     injected
     GET /static/...  files of static/
     WS  /keys        key events from keys.js, paired to the tab's session by the nonce the session put in the page
     GET /gallery     static/gallery.html, the gallery page; only with the gallery router (it calls /api)
@@ -35,9 +36,9 @@ def viser_index_html() -> str:
 
 
 def inject(page: str, viser_port: int) -> str:
-    """The viser page with our configuration and key script right after <head>."""
+    """The viser page with our configuration, canvas settings and key script right after <head>."""
     snippet = (f"<script>window.__KINETIX__ = {json.dumps({'viserPort': viser_port})};</script>"
-               '<script src="/static/keys.js"></script>')
+               '<script src="/static/canvas.js"></script><script src="/static/keys.js"></script>')
     head = page.find("<head>")
     if head < 0:
         raise ValueError("viser's index.html has no <head>; cannot inject the key script")

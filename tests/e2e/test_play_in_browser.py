@@ -61,3 +61,20 @@ def test_arrow_right_drives_the_motor_and_release_stops_it(browser, app):
         tab.assert_local_only()
     finally:
         tab.close()
+
+
+def test_the_canvas_does_not_multisample_the_prerendered_frames(browser, app):
+    # static/canvas.js turns off WebGL antialiasing before viser creates its context (software WebGL spent most
+    # of the machine on it); the frame itself is anti-aliased by the server, and drawing still works.
+    tab = Tab(browser, app)
+    try:
+        attributes = tab.page.evaluate(
+            "() => { const c = [...document.querySelectorAll('canvas')].sort((a, b) => b.width * b.height - "
+            "a.width * a.height)[0]; const gl = c.getContext('webgl2') || c.getContext('webgl'); "
+            "return gl && gl.getContextAttributes(); }")
+        assert attributes is not None, "viser's canvas has no WebGL context"
+        assert attributes["antialias"] is False
+        assert attributes["preserveDrawingBuffer"] is True  # viser's own setting is kept
+        assert _pixels(tab.canvas_png(300, 260)).std() > 5  # the level is on the canvas, not a blank frame
+    finally:
+        tab.close()

@@ -96,16 +96,20 @@ class Scene:
     thruster_binding: np.ndarray
 
 
-def scene_of(level, static_from: Scene | None = None) -> Scene:
+def scene_of(level, static_from: Scene | None = None, pose: tuple | None = None) -> Scene:
     """A Scene from a kinetix Level (single, not batched).
 
     `static_from`: a Scene of the same play. Only positions and angles change while a level plays, so just those
-    two arrays are fetched and the rest is shared (one transfer instead of 19 per frame).
+    two arrays are fetched and the rest is shared (one transfer instead of 19 per frame). `pose`: those two as
+    host arrays already (server.play.Motion fetched them with the step), so nothing is transferred.
     """
     import jax
 
     if static_from is not None:
-        position, angle = jax.device_get((level.sim.bodies.position, level.sim.bodies.angle))
+        if pose is not None:
+            position, angle = pose
+        else:
+            position, angle = jax.device_get((level.sim.bodies.position, level.sim.bodies.angle))
         return dataclasses.replace(static_from, position=np.asarray(position), angle=np.asarray(angle))
 
     b, j, t = level.sim.bodies, level.sim.joints, level.sim.thrusters
@@ -236,7 +240,7 @@ def draw_frame(scene: Scene | None, view: View, *, overlay=None, hud: str = "", 
     else:
         return frame
     strip = Image.fromarray(frame[rows[0]:rows[1]])
-    _draw_text(ImageDraw.Draw(strip), view, hud=hud, banner=banner, message=message, legend=items, top=rows[0])
+    _draw_text(strip, view, hud=hud, banner=banner, message=message, legend=items, top=rows[0])
     frame[rows[0]:rows[1]] = np.asarray(strip)
     return frame
 
@@ -331,21 +335,21 @@ TEXT_TOP = 22  # pixels from the world box's top to the first legend row (the HU
 LEGEND_ROW = 16
 
 
-def _draw_text(draw: ImageDraw.ImageDraw, view: View, *, hud: str, banner: str, message: str | None,
-               legend: list, top: int = 0) -> None:
+def _draw_text(image: Image.Image, view: View, *, hud: str, banner: str, message: str | None, legend: list,
+               top: int = 0) -> None:
     """Text in view coordinates, on an image whose first row is the view's row `top`."""
-    font = _font(13)
+    draw = ImageDraw.Draw(image)
     ox, oy = view.origin
     oy -= top
     if hud:
-        draw.text((ox + 6, oy + 4), hud, fill=(30, 30, 30), font=font)
+        _hud_text(image, (ox + 6, oy + 4), hud)
     y = oy + TEXT_TOP
     for text, colour in legend:
         draw.rectangle([ox + 6, y + 2, ox + 16, y + 12], fill=colour, outline=OUTLINE)
-        draw.text((ox + 20, y), text, fill=(30, 30, 30), font=font)
+        _text(image, (ox + 20, y), text, TEXT, 13)
         y += LEGEND_ROW
     if message:
-        draw.text((ox + 6, view.height - view.origin[1] - 20 - top), message, fill=(200, 0, 0), font=font)
+        _text(image, (ox + 6, view.height - view.origin[1] - 20 - top), message, (200, 0, 0), 13)
     if banner:
         big = _font(22)
         lines = banner.split("\n")
@@ -354,7 +358,50 @@ def _draw_text(draw: ImageDraw.ImageDraw, view: View, *, hud: str, banner: str, 
         draw.rectangle([0, box_top, view.width, box_top + h], fill=(255, 255, 255), outline=OUTLINE)
         for n, line in enumerate(lines):
             w = draw.textlength(line, font=big)
-            draw.text((view.width / 2 - w / 2, box_top + 8 + 28 * n), line, fill=(20, 20, 20), font=big)
+            _text(image, (view.width / 2 - w / 2, box_top + 8 + 28 * n), line, (20, 20, 20), 22)
+
+
+TEXT = (30, 30, 30)
+HUD_GAP = 12  # pixels between the HUD's fields
+
+
+def _hud_text(image: Image.Image, xy: tuple[float, float], hud: str) -> None:
+    """The HUD line, field by field ("PLAY", "step 12", "0.40 s", held keys are separated by two spaces): most
+    fields repeat from frame to frame, so their cached masks are reused and only the changing numbers are
+    rendered."""
+    x, y = xy
+    for field in hud.split("  "):
+        if field:
+            x = int(x) + _text(image, (x, y), field, TEXT, 13) + HUD_GAP
+
+
+@functools.lru_cache(maxsize=512)
+def _text_mask(text: str, size: int, fx: float, fy: float) -> tuple[Image.Image, int, int]:
+    """(coverage mask, x, y of the pen in it) of `text` drawn with its pen at fraction (fx, fy) of a pixel.
+
+    Drawn by Pillow itself on a black "L" image in white, so the mask is exactly the coverage ImageDraw.text
+    blends with; pasting the ink through it gives the same pixels as drawing the text there (tested). FreeType
+    renders a line in 0.1-0.2 ms, and the legend and most of the HUD repeat every frame.
+    """
+    font = _font(size)
+    core, (dx, dy) = font.getmask2(text, "L", start=(fx, fy))
+    px, py = max(0, -dx), max(0, -dy)  # the pen in the mask, so no glyph starts left of or above it
+    w, h = core.size
+    mask = Image.new("L", (max(1, px + dx + w), max(1, py + dy + h)), 0)
+    ImageDraw.Draw(mask).text((px + fx, py + fy), text, fill=255, font=font)
+    return mask, px, py
+
+
+def _text(image: Image.Image, xy: tuple[float, float], text: str, fill, size: int) -> int:
+    """ImageDraw.text(xy, text, fill, font=_font(size)), through a cached mask; returns the text's width in pixels."""
+    x, y = xy
+    if x < 0 or y < 0:  # ImageDraw splits negative positions differently (toward zero); rare, so not cached
+        ImageDraw.Draw(image).text(xy, text, fill=fill, font=_font(size))
+        return math.ceil(_font(size).getlength(text))
+    ix, iy = int(x), int(y)
+    mask, px, py = _text_mask(text, size, x - ix, y - iy)
+    image.paste(fill, (ix - px, iy - py), mask)
+    return mask.width - px
 
 
 def encode_jpeg(frame: np.ndarray, quality: int = 85) -> bytes:

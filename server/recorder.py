@@ -110,11 +110,15 @@ class LiveRecording:
             self._pending.append((name, args, kwargs))
 
     def add_step(self, action: np.ndarray, state, result) -> None:
-        bodies = state.level.sim.bodies
-        # The step's arrays are computed already (the StepResult was fetched), so these copies do not wait.
-        snapshot = _Bodies(bodies=_Bodies(position=np.asarray(bodies.position), angle=np.asarray(bodies.angle),
-                                          velocity=np.asarray(bodies.velocity),
-                                          angular_velocity=np.asarray(bodies.angular_velocity)))
+        motion = getattr(result, "motion", None)  # play.Motion: fetched with the step's numbers
+        if motion is None:
+            # The step's arrays are computed already (the StepResult was fetched), so these copies do not wait.
+            bodies = state.level.sim.bodies
+            motion = (np.asarray(bodies.position), np.asarray(bodies.angle), np.asarray(bodies.velocity),
+                      np.asarray(bodies.angular_velocity))
+        position, angle, velocity, angular_velocity = motion
+        snapshot = _Bodies(bodies=_Bodies(position=position, angle=angle, velocity=velocity,
+                                          angular_velocity=angular_velocity))
         with self.lock:
             if not self.open:
                 return

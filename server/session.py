@@ -195,6 +195,7 @@ class Session:
         self._key_pending = False
         self._play_id = 0  # counts plays, so a step computed for an earlier play is dropped
         self._play_scene: draw.Scene | None = None  # the play's drawn scene (its static parts are reused per frame)
+        self._play_motion = None  # play.Motion of the state in _play, fetched with its step (None: fetch to draw)
         self._pending_push = None  # the Future of this session's frame being encoded and sent, if any
         self._next_tick: float | None = None
         self._message: str | None = None
@@ -386,6 +387,7 @@ class Session:
             self._play_id += 1
             self._next_tick = None
             self._play_scene = None
+            self._play_motion = None
             self.manager.notify("play_started", self, level_file, params)
             self._set_buttons()
             self.manager.scheduler.add(self)
@@ -496,6 +498,7 @@ class Session:
                 return
             stepper, _, params = self._play
             self._play = (stepper, state, params)
+            self._play_motion = result.motion
             self._steps = result.timestep
             self.manager.notify("play_stepped", self, plan.action, state, result)
             end = episode_end(result) if self.controller is None else self.controller.episode_end(state, result)
@@ -558,7 +561,9 @@ class Session:
             frame = self.controller.draw(self, self._view, banner)
             if frame is not None:
                 return frame
-        self._play_scene = draw.scene_of(state.level, static_from=self._play_scene)
+        motion = self._play_motion
+        pose = None if motion is None else (motion.position, motion.angle)
+        self._play_scene = draw.scene_of(state.level, static_from=self._play_scene, pose=pose)
         return draw.draw_frame(self._play_scene, self._view, hud=self.hud(), banner=banner)
 
     def refresh(self, force: bool = False) -> None:

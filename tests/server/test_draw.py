@@ -63,7 +63,7 @@ def test_motor_joints_get_a_key_legend():
 @pytest.mark.parametrize("size", [(640, 480), (400, 800)])
 def test_hud_drawn_on_its_rows_matches_drawing_on_the_whole_frame(level, size):
     """Frames draw the HUD on a strip of rows only (for speed); the pixels must equal drawing on the whole frame."""
-    from PIL import Image, ImageDraw
+    from PIL import Image
 
     from server.draw import _draw_text
 
@@ -71,9 +71,30 @@ def test_hud_drawn_on_its_rows_matches_drawing_on_the_whole_frame(level, size):
     hud = "PLAY  step 120  4.00 s  ArrowRight"
     frame = draw_frame(scene_of(level), view, hud=hud, legend=False)
     whole = Image.fromarray(draw_frame(scene_of(level), view, legend=False))
-    _draw_text(ImageDraw.Draw(whole), view, hud=hud, banner="", message=None, legend=[])
+    _draw_text(whole, view, hud=hud, banner="", message=None, legend=[])
     assert np.array_equal(frame, np.asarray(whole))
     assert not np.array_equal(frame, draw_frame(scene_of(level), view, legend=False)), "the HUD is drawn at all"
     corner = frame[0, 0].copy()
     frame[0, 0] = 255 - corner  # a frame is a fresh array: writing to it must not touch the cached static layer
     assert np.array_equal(draw_frame(scene_of(level), view, hud=hud, legend=False)[0, 0], corner)
+
+
+def test_cached_text_has_the_pixels_of_pillows_text():
+    """Text is pasted through cached coverage masks (server.draw._text); on any background and at fractional
+    positions it must give exactly the pixels ImageDraw.text gives."""
+    from PIL import Image, ImageDraw
+
+    from server.draw import _font, _text
+
+    rng = np.random.default_rng(0)
+    for i in range(120):
+        text = f"step {rng.integers(0, 5000)}  {rng.random() * 80:.2f} s  motor {i % 4}: ←/→ You won!"[: 5 + i % 40]
+        size = (13, 22)[i % 2]
+        xy = (float(rng.random() * 30 - 4), float(rng.random() * 30 - 6))  # some negative, some off the edge
+        base = Image.fromarray(rng.integers(0, 256, (48, 260 if i % 3 else 60, 3), dtype=np.uint8))
+        expected, got = base.copy(), base.copy()
+        ImageDraw.Draw(expected).text(xy, text, fill=(30, 30, 30), font=_font(size))
+        for _ in range(2):  # the second call comes from the cache
+            got = base.copy()
+            _text(got, xy, text, (30, 30, 30), size)
+            assert np.array_equal(np.asarray(got), np.asarray(expected)), (text, xy, size)

@@ -2,8 +2,9 @@
 
 - draw_ms: server.draw frame time at 512x512 (mean over a project level, static layer cached as in play);
 - key-to-frame latency in headless Chromium (the apt chromium via playwright): from the keydown handler in the
-  page to the moment the message batch carrying the frame stepped with that key is applied in the page (the
-  server puts the key's sequence number in a hidden element in the same batch as the frame), p50 and p90;
+  page to the moment the frame stepped with that key is drawn on the page's canvas (static/frames.js; the server
+  puts the key's sequence number in a hidden element in the same batch as the frame), p50 and p90;
+- frames per second the Chromium page drew (not just received) while playing one level;
 - key-to-wire latency: the same, ending when a headless protocol client receives that batch (server side only);
 - fps delivered to one tab and to each of 8 concurrent playing sessions, counted at the websocket by headless
   protocol clients in a child process (browser tabs with software WebGL would measure the 2-core machine's
@@ -43,37 +44,23 @@ def _draw_ms(level_file) -> float:
     return (time.perf_counter() - t0) / 200 * 1000
 
 
-# viser's client decodes message batches in a Web Worker and posts them to the page; timestamp each batch that
-# carries our hidden ack element (the key's sequence number, sent in the same batch as the frame it produced).
-ACK_SCRIPT = r"""
-window.__acks = [];
-const KinetixWorker = window.Worker;
-window.Worker = function (url, options) {
-  const worker = new KinetixWorker(url, options);
-  worker.addEventListener("message", (event) => {
-    const now = performance.now();
-    let text;
-    try {
-      text = JSON.stringify(event.data, (k, v) => (ArrayBuffer.isView(v) || v instanceof ArrayBuffer) ? undefined : v);
-    } catch (e) { return; }
-    const found = text && text.match(/kinetix-ack[^0-9]*data-seq=[^0-9]*([0-9]+)/g);
-    if (found) for (const f of found) window.__acks.push([+f.match(/([0-9]+)$/)[1], now]);
-  });
-  return worker;
-};
-"""
+# static/frames.js draws each frame on the page's frame canvas and tells its listeners which key acknowledgements
+# (the key's sequence number, sent in the same batch as the frame it produced) that frame carried.
+DRAWN_SCRIPT = """() => { window.__drawn = []; window.__kinetixFrames.listeners.push((seq, acks) => {
+  const now = performance.now(); for (const a of acks) window.__drawn.push([a, now]); }); }"""
 
 
-def _latency(app, chromium: str, samples: int) -> list[float]:
+def _latency(app, chromium: str, samples: int) -> tuple[list[float], float]:
+    """Key-to-frame latencies (ms) and the frames per second the page drew while playing."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--use-gl=swiftshader"])
         # The control panel (about 390 px) is docked beside the canvas: this leaves a canvas of about 640x480.
         page = browser.new_page(viewport={"width": 1030, "height": 480})
-        page.add_init_script(ACK_SCRIPT)
         page.goto(app.url)
         page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        page.evaluate(DRAWN_SCRIPT)
         box = page.evaluate("() => { const r = [...document.querySelectorAll('canvas')].map(c => "
                             "c.getBoundingClientRect()).sort((a, b) => b.width * b.height - a.width * a.height)[0];"
                             " return [r.x + r.width / 2, r.y + r.height / 2]; }")
@@ -86,14 +73,18 @@ def _latency(app, chromium: str, samples: int) -> list[float]:
             page.keyboard.down(key)
             seq, t = page.evaluate("() => { const s = window.__kinetixKeys.sent; return [s[s.length-1].seq, "
                                    "s[s.length-1].t]; }")
-            page.wait_for_function(f"window.__acks.some(a => a[0] >= {seq})", timeout=5000)
-            ack = page.evaluate(f"() => window.__acks.find(a => a[0] >= {seq})[1]")
+            page.wait_for_function(f"window.__drawn.some(a => a[0] >= {seq})", timeout=5000)
+            ack = page.evaluate(f"() => window.__drawn.find(a => a[0] >= {seq})[1]")
             latencies.append(ack - t)
             page.keyboard.up(key)
             page.wait_for_timeout(60)
+        # Frames the page drew in 3 s of play with no key held.
+        drawn0, t0 = page.evaluate("() => [window.__kinetixFrames.drawn, performance.now()]")
+        page.wait_for_timeout(3000)
+        drawn1, t1 = page.evaluate("() => [window.__kinetixFrames.drawn, performance.now()]")
         page.keyboard.press("Space")
         browser.close()
-    return latencies
+    return latencies, (drawn1 - drawn0) / (t1 - t0) * 1000
 
 
 def _wire_latency(app, samples: int) -> list[float]:
@@ -198,9 +189,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         _print("draw_ms_512", _draw_ms(level_file), "ms", args.json)
         if Path(args.chromium).exists():
-            lat = sorted(_latency(app, args.chromium, args.samples))
+            lat, drawn_fps = _latency(app, args.chromium, args.samples)
+            lat = sorted(lat)
             _print("key_to_frame_p50", statistics.median(lat), "ms", args.json, samples=len(lat))
             _print("key_to_frame_p90", lat[int(0.9 * (len(lat) - 1))], "ms", args.json, samples=len(lat))
+            _print("fps_drawn_in_chromium", drawn_fps, "fps", args.json)
         else:
             print(f"no chromium at {args.chromium}: latency not measured (run .ci/setup-chromium.sh)", file=sys.stderr)
         wire = sorted(_wire_latency(app, args.samples))

@@ -3,7 +3,7 @@
 viser serves only its own client build and has no hooks for routes, so this FastAPI app (run by uvicorn in
 a background thread, see server.app) is the one URL the user opens:
 
-    GET /            viser's client/build/index.html with `window.__KINETIX__ = {viserPort}`, canvas.js and keys.js
+    GET /            viser's client/build/index.html with `window.__KINETIX__ = {viserPort}`, frames.js and keys.js
                      injected
     GET /static/...  files of static/
     WS  /keys        key events from keys.js, paired to the tab's session by the nonce the session put in the page
@@ -36,9 +36,9 @@ def viser_index_html() -> str:
 
 
 def inject(page: str, viser_port: int) -> str:
-    """The viser page with our configuration, canvas settings and key script right after <head>."""
+    """The viser page with our configuration, frame display and key script right after <head>."""
     snippet = (f"<script>window.__KINETIX__ = {json.dumps({'viserPort': viser_port})};</script>"
-               '<script src="/static/canvas.js"></script><script src="/static/keys.js"></script>')
+               '<script src="/static/frames.js"></script><script src="/static/keys.js"></script>')
     head = page.find("<head>")
     if head < 0:
         raise ValueError("viser's index.html has no <head>; cannot inject the key script")

@@ -63,18 +63,32 @@ def test_arrow_right_drives_the_motor_and_release_stops_it(browser, app):
         tab.close()
 
 
-def test_the_canvas_does_not_multisample_the_prerendered_frames(browser, app):
-    # static/canvas.js turns off WebGL antialiasing before viser creates its context (software WebGL spent most
-    # of the machine on it); the frame itself is anti-aliased by the server, and drawing still works.
+def test_frames_are_drawn_over_viser_canvas_and_clicks_still_reach_it(browser, app):
+    # static/frames.js takes the frames out of viser's message batches and draws them on its own 2D canvas over
+    # viser's WebGL canvas; viser's background stays empty and the pointer still goes to viser's canvas.
     tab = Tab(browser, app)
     try:
-        attributes = tab.page.evaluate(
-            "() => { const c = [...document.querySelectorAll('canvas')].sort((a, b) => b.width * b.height - "
-            "a.width * a.height)[0]; const gl = c.getContext('webgl2') || c.getContext('webgl'); "
-            "return gl && gl.getContextAttributes(); }")
-        assert attributes is not None, "viser's canvas has no WebGL context"
-        assert attributes["antialias"] is False
-        assert attributes["preserveDrawingBuffer"] is True  # viser's own setting is kept
-        assert _pixels(tab.canvas_png(300, 260)).std() > 5  # the level is on the canvas, not a blank frame
+        page, session = tab.page, tab.session
+        geometry = page.evaluate(
+            "() => { const o = document.getElementById('kinetix-frame'); if (!o) return null; "
+            "const v = o.previousElementSibling; const a = o.getBoundingClientRect(), b = v.getBoundingClientRect(); "
+            "return {tag: v.tagName, pointer: getComputedStyle(o).pointerEvents, size: [o.width, o.height], "
+            "box: [a.x, a.y, a.width, a.height], viser: [b.x, b.y, b.width, b.height]}; }")
+        assert geometry is not None, "no frame overlay on the page"
+        assert geometry["tag"] == "CANVAS" and geometry["pointer"] == "none"
+        assert geometry["box"] == pytest.approx(geometry["viser"], abs=1.0)  # it covers viser's canvas exactly
+        assert geometry["size"] == [session._view.width, session._view.height]  # one frame pixel per canvas pixel
+        drawn = page.evaluate("() => window.__kinetixFrames.drawn")
+        calls = len(session.pointer_log)
+        page.mouse.click(400, 300)  # lands on viser's canvas under the overlay: the session sees the click
+        _wait(lambda: len(session.pointer_log) > calls)
+        page.keyboard.press("Space")
+        _wait(lambda: session.mode == "play")
+        time.sleep(1.5)
+        played = page.evaluate("() => window.__kinetixFrames.drawn") - drawn
+        assert played >= 10, f"only {played} frames drawn in 1.5 s of play"
+        assert _pixels(tab.canvas_png(300, 260)).std() > 5  # the level is on screen, not a blank canvas
+        page.keyboard.press("Space")
+        _wait(lambda: session.mode == "edit")
     finally:
         tab.close()

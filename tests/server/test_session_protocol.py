@@ -61,11 +61,11 @@ def _has_label(client, label: str) -> bool:
 def test_page_has_the_key_script_and_viser_port(app):
     page = urllib.request.urlopen(app.url, timeout=10).read().decode()
     assert '<script src="/static/keys.js"></script>' in page
-    # Our scripts open <head>, so canvas.js runs before viser's own code creates the WebGL context.
-    ours = '<script src="/static/canvas.js"></script><script src="/static/keys.js"></script>'
+    # Our scripts open <head>, so frames.js wraps window.Worker before viser's own code creates its worker.
+    ours = '<script src="/static/frames.js"></script><script src="/static/keys.js"></script>'
     after_ours = page.index(ours) + len(ours)
     assert page.index("<head>") < page.index("__KINETIX__") < page.index(ours) < page.index("<script", after_ours)
-    assert "antialias: false" in urllib.request.urlopen(app.url + "static/canvas.js", timeout=10).read().decode()
+    assert "BackgroundImageMessage" in urllib.request.urlopen(app.url + "static/frames.js", timeout=10).read().decode()
     assert json.dumps({"viserPort": app.viser.get_port()}) in page
     script = urllib.request.urlopen(app.url + "static/keys.js", timeout=10).read().decode()
     assert "kinetix-session" in script and "/keys" in script

@@ -1,0 +1,147 @@
+// Shows the server's frames on a 2D canvas over viser's WebGL canvas. Injected into viser's page by
+// server/http.py, before viser's own code runs.
+//
+// The server sends every frame as viser's BackgroundImageMessage (one JPEG per frame, in the same message batch
+// as the key acknowledgement). viser would load each through an <img> and a new WebGL texture, drop a frame
+// whose decode finishes after the next frame arrived, and re-render its 3D scene for 250 ms after each one. On
+// a slow machine (measured: headless Chromium with software WebGL, 2 cores) that kept the GPU process at 120% CPU,
+// showed about 7 of the 30 frames a second, and held every message batch ~20 ms behind a busy main thread.
+// Here each frame is decoded off the main thread (createImageBitmap) and drawn with one drawImage; frames are shown
+// in order and a frame is dropped only when a newer one is already on screen. viser's canvas stays underneath
+// for pointer input (the overlay ignores the pointer), and every other message still goes to viser.
+(function () {
+  "use strict";
+  const state = {
+    overlay: null, // our <canvas>
+    target: null, // viser's canvas it covers
+    context: null,
+    latest: 0, // sequence number of the newest frame received
+    shown: 0, // ... and of the newest frame drawn
+    drawn: 0, // frames drawn so far (tests and the benchmark read it)
+    hidden: false,
+    listeners: [], // callbacks (seq, acks) after each draw, for the benchmark
+  };
+  window.__kinetixFrames = state;
+
+  function viserCanvas() {
+    let best = null;
+    for (const canvas of document.querySelectorAll("canvas")) {
+      if (canvas === state.overlay) continue;
+      if (!best || canvas.clientWidth * canvas.clientHeight > best.clientWidth * best.clientHeight) best = canvas;
+    }
+    return best;
+  }
+
+  function place() {
+    const target = state.target;
+    const overlay = state.overlay;
+    if (!target || !overlay) return;
+    overlay.style.left = target.offsetLeft + "px";
+    overlay.style.top = target.offsetTop + "px";
+    overlay.style.width = target.clientWidth + "px";
+    overlay.style.height = target.clientHeight + "px";
+  }
+
+  // The overlay sits right after viser's canvas in the same parent, so viser's own overlays (the box-select
+  // rectangle) that come later in the page stay on top of it.
+  function attach() {
+    const target = viserCanvas();
+    if (!target || !target.parentElement) return false;
+    if (state.overlay && state.target === target && state.overlay.isConnected) return true;
+    if (state.overlay) state.overlay.remove();
+    const overlay = document.createElement("canvas");
+    overlay.id = "kinetix-frame";
+    overlay.style.position = "absolute";
+    overlay.style.pointerEvents = "none";
+    overlay.style.display = state.hidden ? "none" : "block";
+    target.insertAdjacentElement("afterend", overlay);
+    state.overlay = overlay;
+    state.target = target;
+    state.context = overlay.getContext("2d", { alpha: false });
+    new ResizeObserver(place).observe(target);
+    place();
+    return true;
+  }
+
+  function draw(seq, bitmap, acks) {
+    if (seq < state.shown || !attach()) {
+      bitmap.close();
+      return;
+    }
+    const overlay = state.overlay;
+    if (overlay.width !== bitmap.width || overlay.height !== bitmap.height) {
+      overlay.width = bitmap.width;
+      overlay.height = bitmap.height;
+      place();
+    }
+    state.context.drawImage(bitmap, 0, 0);
+    bitmap.close();
+    state.shown = seq;
+    state.drawn += 1;
+    for (const listener of state.listeners) listener(seq, acks);
+  }
+
+  function setHidden(hidden) {
+    state.hidden = hidden;
+    if (state.overlay) state.overlay.style.display = hidden ? "none" : "block";
+  }
+
+  // The key acknowledgements in a batch (<div id="kinetix-ack" data-seq=N>), so the benchmark can time the
+  // frame that carried them.
+  function acksOf(messages) {
+    const acks = [];
+    for (const message of messages) {
+      if (message.type !== "GuiUpdateMessage") continue;
+      const content = message.updates && message.updates.content;
+      const match = typeof content === "string" && content.match(/kinetix-ack" data-seq="([0-9]+)"/);
+      if (match) acks.push(+match[1]);
+    }
+    return acks;
+  }
+
+  function take(data) {
+    if (!data || data.type !== "message_batch" || !Array.isArray(data.messages)) return;
+    const messages = data.messages;
+    let frame = null;
+    let cleared = false;
+    for (let i = messages.length - 1; i >= 0; i--) {
+      const message = messages[i];
+      if (message.type !== "BackgroundImageMessage" || message.depth_data) continue;
+      if (frame === null && !cleared) {
+        if (message.rgb_data) frame = message;
+        else cleared = true;
+      }
+      if (message.rgb_data) messages.splice(i, 1); // viser does not see the images we show
+    }
+    if (cleared) {
+      state.shown = ++state.latest; // a clear supersedes every frame in flight
+      setHidden(true);
+      return;
+    }
+    if (frame === null) return;
+    setHidden(false);
+    const seq = ++state.latest;
+    const acks = state.listeners.length ? acksOf(messages) : [];
+    createImageBitmap(new Blob([frame.rgb_data], { type: "image/" + frame.format })).then(
+      (bitmap) => draw(seq, bitmap, acks),
+      (error) => console.warn("kinetix: a frame did not decode", error),
+    );
+  }
+
+  // viser receives its message batches from a Web Worker; listen on each worker first (before viser's own
+  // handler, which is set after construction) and take the frames out of the batch.
+  const ViserWorker = window.Worker;
+  function Worker(url, options) {
+    const worker = new ViserWorker(url, options);
+    worker.addEventListener("message", (event) => {
+      try {
+        take(event.data);
+      } catch (error) {
+        console.warn("kinetix: frame handling failed", error);
+      }
+    });
+    return worker;
+  }
+  Worker.prototype = ViserWorker.prototype;
+  window.Worker = Worker;
+})();

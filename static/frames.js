@@ -44,11 +44,13 @@
 
   // The overlay sits right after viser's canvas in the same parent, so viser's own overlays (the box-select
   // rectangle) that come later in the page stay on top of it.
+  const resizes = new ResizeObserver(place);
   function attach() {
+    if (state.overlay && state.overlay.isConnected && state.target && state.target.isConnected) return true;
     const target = viserCanvas();
     if (!target || !target.parentElement) return false;
-    if (state.overlay && state.target === target && state.overlay.isConnected) return true;
     if (state.overlay) state.overlay.remove();
+    if (state.target) resizes.unobserve(state.target);
     const overlay = document.createElement("canvas");
     overlay.id = "kinetix-frame";
     overlay.style.position = "absolute";
@@ -58,7 +60,7 @@
     state.overlay = overlay;
     state.target = target;
     state.context = overlay.getContext("2d", { alpha: false });
-    new ResizeObserver(place).observe(target);
+    resizes.observe(target);
     place();
     return true;
   }

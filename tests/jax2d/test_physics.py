@@ -454,9 +454,9 @@ RANDOM_RESULTS: dict = {}
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known defect (see the engine issue note): in a few of the 64 crowded "
-                   "scenes a light hub carrying several motor joints at full power reaches the speed clamp, "
-                   "tunnels through a wall and its joints tear")
+@pytest.mark.xfail(strict=True, reason="known defect (docs/engine.md, Known problems): in a few of the 64 crowded "
+                   "scenes a very light hub carrying several motor joints blows up within a step at 4 substeps "
+                   "(stable at 8), leaves the world through a wall and its joints tear")
 def test_random_crowded_scenes_keep_bodies_inside_and_joints_attached():
     if not RANDOM_RESULTS:
         pytest.skip("needs test_random_crowded_scenes_stay_finite in the same run")

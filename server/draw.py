@@ -26,6 +26,7 @@ LETTERBOX = (226, 228, 232)
 ROLE = [(160, 160, 160), (0, 204, 0), (0, 102, 204), (255, 102, 102)]  # none, green, blue, red
 FIXED_ROLE = [(80, 80, 80), (0, 102, 0), (0, 51, 102), (128, 51, 51)]  # static bodies darker
 OUTLINE = (20, 20, 20)
+TEXT = (30, 30, 30)
 MOTOR_COLOURS = [(255, 200, 0), (230, 0, 230), (0, 200, 210), (255, 120, 0)]  # motor bindings 0-3
 THRUSTER_COLOURS = [(255, 69, 0), (148, 0, 211)]  # thruster bindings 0-1
 JOINT_OFF = (255, 255, 255)
@@ -361,7 +362,6 @@ def _draw_text(image: Image.Image, view: View, *, hud: str, banner: str, message
             _text(image, (view.width / 2 - w / 2, box_top + 8 + 28 * n), line, (20, 20, 20), 22)
 
 
-TEXT = (30, 30, 30)
 HUD_GAP = 12  # pixels between the HUD's fields
 
 

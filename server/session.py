@@ -156,6 +156,12 @@ class PlayOnlyEditor:
         return lambda *args, **kwargs: "editing needs the server.editor package"
 
 
+def _ack_html(seq: int) -> str:
+    """The hidden element that acknowledges key `seq` in the batch of the frame it produced (static/frames.js and
+    the benchmark read this exact form)."""
+    return f'<div id="kinetix-ack" data-seq="{seq}" hidden></div>'
+
+
 def _set_background_jpeg(client, data: bytes, frame: np.ndarray) -> None:
     """Queue an already encoded JPEG as the scene background.
 
@@ -217,7 +223,7 @@ class Session:
     def _build_gui(self) -> None:
         gui = self.client.gui
         gui.add_html(f'<div id="kinetix-session" data-nonce="{self.nonce}" hidden></div>')
-        self._ack = gui.add_html('<div id="kinetix-ack" data-seq="-1" hidden></div>')
+        self._ack = gui.add_html(_ack_html(-1))
         with gui.add_folder("Play"):
             self._play_button = gui.add_button("Play (Space)", icon=None)
             self._pause_button = gui.add_button("Pause", disabled=True)
@@ -609,7 +615,7 @@ class Session:
             with client.atomic():
                 _set_background_jpeg(client, data, frame)
                 if ack_seq is not None:
-                    self._ack.content = f'<div id="kinetix-ack" data-seq="{ack_seq}" hidden></div>'
+                    self._ack.content = _ack_html(ack_seq)
             client.flush()
         except Exception:  # e.g. the tab went away mid-send
             log.debug("frame not sent", exc_info=True)
@@ -620,7 +626,7 @@ class Session:
 
     def _push_ack(self, seq: int) -> None:
         if seq >= 0:
-            self._ack.content = f'<div id="kinetix-ack" data-seq="{seq}" hidden></div>'
+            self._ack.content = _ack_html(seq)
 
     # ------------------------------------------------------------------ teardown
 

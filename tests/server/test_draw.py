@@ -92,7 +92,7 @@ def test_cached_text_has_the_pixels_of_pillows_text():
         size = (13, 22)[i % 2]
         xy = (float(rng.random() * 30 - 4), float(rng.random() * 30 - 6))  # some negative, some off the edge
         base = Image.fromarray(rng.integers(0, 256, (48, 260 if i % 3 else 60, 3), dtype=np.uint8))
-        expected, got = base.copy(), base.copy()
+        expected = base.copy()
         ImageDraw.Draw(expected).text(xy, text, fill=(30, 30, 30), font=_font(size))
         for _ in range(2):  # the second call comes from the cache
             got = base.copy()

@@ -26,7 +26,7 @@ from jax2d.state import (
     Thrusters,
     empty_state,
 )
-from jax2d.step import step
+from jax2d.step import step, step_batch
 
 __all__ = [
     "COLLIDE_ALL",
@@ -43,4 +43,5 @@ __all__ = [
     "empty_state",
     "scene",
     "step",
+    "step_batch",
 ]

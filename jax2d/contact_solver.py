@@ -17,7 +17,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse
+from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse, stored
 from jax2d.pairs import ContactLayout
 
 
@@ -86,7 +86,10 @@ def _relative_velocity(vax, vay, wa, vbx, vby, wb, rax, ray, rbx, rby):
 
 
 def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose, pose0: Pose):
-    """Packed (C, 2, K) separation after the bodies moved from pose0 to pose, anchors rotated with them."""
+    """Packed (C, 2, K, *batch) separation after the bodies moved from pose0 to pose, anchors rotated with them.
+
+    Runs inside the substeps on batch-last arrays (see step.py): per-body (M, *batch), per-slot (S, *batch).
+    """
     a, b = layout.slot_a, layout.slot_b
 
     def moved_anchor(i, rx, ry):
@@ -112,15 +115,16 @@ _ROW = {name: i for i, name in enumerate(CONST_ROWS)}
 
 
 def pack_rows(layout: ContactLayout, rows) -> jax.Array:
-    """A list of (S,) arrays -> (C, F, K)."""
+    """A list of (S, *batch) arrays -> (C, F, K, *batch)."""
     C, K = layout.num_colours, layout.per_colour
-    return jnp.stack(rows).astype(jnp.float32).reshape(len(rows), C, K).transpose(1, 0, 2)
+    stacked = jnp.stack(rows).astype(jnp.float32)
+    return jnp.swapaxes(stacked.reshape((len(rows), C, K) + stacked.shape[2:]), 0, 1)
 
 
 def unpack_rows(packed) -> jax.Array:
-    """(C, F, K) -> (F, S)."""
-    C, F, K = packed.shape
-    return packed.transpose(1, 0, 2).reshape(F, C * K)
+    """(C, F, K, *batch) -> (F, S, *batch)."""
+    C, F, K = packed.shape[:3]
+    return jnp.swapaxes(packed, 0, 1).reshape((F, C * K) + packed.shape[3:])
 
 
 def pack_constraints(layout: ContactLayout, cc: ContactConstraints) -> jax.Array:
@@ -212,7 +216,8 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
 
     const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
     Within a colour the two points are loops, not unrolled: a loop boundary stores its
-    carry, which stops XLA from re-deriving each output from the whole chain of updates.
+    carry, which stops XLA from re-deriving each output from the whole chain of updates;
+    inside a point, `stored` does the same for the new accumulated impulse.
     """
 
     def normal(k, carry, c: _Block, sep):
@@ -230,8 +235,11 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
             bias = jnp.where(speculative, s * inv_h, 0.0)
             mass_scale, impulse_scale = 1.0, 0.0
         old = lam_n[k]
-        impulse = -c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old
-        new = jnp.maximum(old + impulse, 0.0)
+
+        def accumulate(vn, old, bias, mass_scale, impulse_scale):
+            return jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old, 0.0)
+
+        new = stored(k, accumulate, vn, old, bias, mass_scale, impulse_scale)
         impulse = new - old
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
         return va, vb, lam_n.at[k].set(new), lam_max.at[k].set(jnp.maximum(lam_max[k], impulse))
@@ -244,7 +252,7 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         vt = dvx * tx + dvy * ty
         limit = c.friction * lam_n[k]
         old = lam_t[k]
-        new = jnp.clip(old - c.point("tmass", k) * vt, -limit, limit)
+        new = stored(k, lambda old, vt, limit: jnp.clip(old - c.point("tmass", k) * vt, -limit, limit), old, vt, limit)
         impulse = new - old
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * tx, impulse * ty)
         return va, vb, lam_t.at[k].set(new)
@@ -269,8 +277,8 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold) -> 
         dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
         vn = dvx * c.nx + dvy * c.ny
         old = lam_n[k]
-        impulse = jnp.where(hit, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0)
-        new = jnp.maximum(old + impulse, 0.0)
+        new = stored(k, lambda old, vn: jnp.maximum(
+            old + jnp.where(hit, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0), 0.0), old, vn)
         impulse = new - old
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
         return va, vb, lam_n.at[k].set(new)

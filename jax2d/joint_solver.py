@@ -2,9 +2,10 @@
 
 Soft constraints as in Box2D v3's soft step. Joints connect bodies chosen by the
 level (data, not constants), so bodies are gathered with one-hot rows (J, M)
-built once per step; a matrix-vector product is cheaper under `vmap` than a
-dynamic gather. Joints are solved one after another (Gauss-Seidel), which keeps
-chains stiff; their count is small and static, so the loop is unrolled.
+built once per step; a masked sum is cheaper under `vmap` than a dynamic gather.
+Joints are solved one after another (Gauss-Seidel) in a loop, which keeps chains
+stiff. `prepare` runs per scene; the rest runs inside the substeps on batch-last
+arrays (step.py): per-body (M, *batch), per-joint (J, *batch).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse
+from jax2d.math2d import Pose, Softness, Vel, cross, pick, pick_rows, rotate, safe_inverse, stored
 from jax2d.state import J_ANGULAR, J_LINEAR_X, J_LINEAR_Y, J_LOWER, J_MOTOR, J_UPPER, Joints
 
 
@@ -71,11 +72,11 @@ def prepare(joints: Joints, num_padded: int, inv_mass, inv_inertia, motor_action
 
 
 def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
-    aa, ab = jc.sel_a @ pose.a, jc.sel_b @ pose.a
+    aa, ab = pick_rows(jc.sel_a, pose.a), pick_rows(jc.sel_b, pose.a)
     rax, ray = rotate(jnp.cos(aa), jnp.sin(aa), joints.anchor_a[:, 0], joints.anchor_a[:, 1])
     rbx, rby = rotate(jnp.cos(ab), jnp.sin(ab), joints.anchor_b[:, 0], joints.anchor_b[:, 1])
-    cx = (jc.sel_b @ pose.x + rbx) - (jc.sel_a @ pose.x + rax)
-    cy = (jc.sel_b @ pose.y + rby) - (jc.sel_a @ pose.y + ray)
+    cx = (pick_rows(jc.sel_b, pose.x) + rbx) - (pick_rows(jc.sel_a, pose.x) + rax)
+    cy = (pick_rows(jc.sel_b, pose.y) + rby) - (pick_rows(jc.sel_a, pose.y) + ray)
     # Only active rows are meaningful; inactive ones have zero selections and masses.
     return JointFrame(rax, ray, rbx, rby, cx, cy, ab - aa - joints.ref_angle)
 
@@ -119,23 +120,15 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
     if impulse.shape[0] == 0:
         return vel, impulse
 
-    def one_joint(j, carry):
-        vel, impulse = carry
-        lam = impulse[j]
-        sa, sb = jc.sel_a[j], jc.sel_b[j]
-        va0 = (sa @ vel.x, sa @ vel.y, sa @ vel.w)
-        vb0 = (sb @ vel.x, sb @ vel.y, sb @ vel.w)
-        (vax, vay, wa), (vbx, vby, wb) = va0, vb0
-        ma, ia, mb, ib, axial = jc.ma[j], jc.ia[j], jc.mb[j], jc.ib[j], jc.axial_mass[j]
-        angle = fr.angle[j]
-
+    def angular(j, lam, wa, wb):
+        """Motor, then the two angle limits: new (motor, lower, upper) impulses and angular velocities."""
+        ia, ib, axial, angle = jc.ia[j], jc.ib[j], jc.axial_mass[j], fr.angle[j]
         # Motor: drive the relative angular velocity to the target, with bounded torque.
         limit = jc.max_motor_impulse[j]
         motor = lam[J_MOTOR] + jc.motor[j] * (
             jnp.clip(lam[J_MOTOR] - axial * (wb - wa - jc.motor_target[j]), -limit, limit) - lam[J_MOTOR])
         d = motor - lam[J_MOTOR]
         wa, wb = wa - ia * d, wb + ib * d
-
         # Limits: one-sided constraints on the relative angle (lower: angle >= lower, upper: angle <= upper).
         limits = []
         for col, gap, sign in ((J_LOWER, angle - jc.lower[j], 1.0), (J_UPPER, jc.upper[j] - angle, -1.0)):
@@ -145,17 +138,20 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
             d = (new - old) * jc.limit[j]
             limits.append(old + d)
             wa, wb = wa - sign * ia * d, wb + sign * ib * d
+        return motor, limits[0], limits[1], wa, wb
 
-        # Point (revolute) or point + angle (weld), as one block solve so the linear and
-        # angular parts do not fight each other (solving them one after the other rings
-        # and, with warm starting, grew without bound on a spinning welded cluster).
+    def point(j, lam, vax, vay, wa, vbx, vby, wb):
+        """Point (revolute) or point + angle (weld) impulse (px, py, pw), as one block solve so the
+        linear and angular parts do not fight each other (solving them one after the other rings
+        and, with warm starting, grew without bound on a spinning welded cluster)."""
+        ma, ia, mb, ib = jc.ma[j], jc.ia[j], jc.mb[j], jc.ib[j]
         rax, ray, rbx, rby = fr.rax[j], fr.ray[j], fr.rbx[j], fr.rby[j]
         cdx = (vbx - wb * rby) - (vax - wa * ray)
         cdy = (vby + wb * rbx) - (vay + wa * rax)
         cdw = wb - wa
         bx, ms, isc = _soft_terms(fr.cx[j], softness, inv_h, use_bias, speculative=False)
         by, _, _ = _soft_terms(fr.cy[j], softness, inv_h, use_bias, speculative=False)
-        bw, _, _ = _soft_terms(angle, softness, inv_h, use_bias, speculative=False)
+        bw, _, _ = _soft_terms(fr.angle[j], softness, inv_h, use_bias, speculative=False)
         k11 = ma + mb + ray * ray * ia + rby * rby * ib
         k12 = -ray * rax * ia - rby * rbx * ib
         k22 = ma + mb + rax * rax * ia + rbx * rbx * ib
@@ -179,17 +175,29 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
         px = -ms * jnp.where(weld, px3, px2) - isc * ox
         py = -ms * jnp.where(weld, py3, py2) - isc * oy
         pw = jnp.where(weld, -ms * pw3 - isc * ow, 0.0)
-        vax, vay, wa = vax - ma * px, vay - ma * py, wa - ia * (cross(rax, ray, px, py) + pw)
-        vbx, vby, wb = vbx + mb * px, vby + mb * py, wb + ib * (cross(rbx, rby, px, py) + pw)
-        weld_impulse = ow + pw
+        return px, py, pw
+
+    def one_joint(j, carry):
+        vel, impulse = carry
+        lam = impulse[j]
+        sa, sb = jc.sel_a[j], jc.sel_b[j]
+        vax, vay, wa0 = pick(sa, vel.x), pick(sa, vel.y), pick(sa, vel.w)
+        vbx, vby, wb0 = pick(sb, vel.x), pick(sb, vel.y), pick(sb, vel.w)
+        # Each stage's results are stored (see math2d.stored) before the next reads them.
+        motor, lower, upper, wa, wb = stored(j, angular, j, lam, wa0, wb0)
+        px, py, pw = stored(j, point, j, lam, vax, vay, wa, vbx, vby, wb)
+        ma, ia, mb, ib = jc.ma[j], jc.ia[j], jc.mb[j], jc.ib[j]
+        dwa = wa - wa0 - ia * (cross(fr.rax[j], fr.ray[j], px, py) + pw)
+        dwb = wb - wb0 + ib * (cross(fr.rbx[j], fr.rby[j], px, py) + pw)
 
         columns = [None] * 6
-        columns[J_LINEAR_X], columns[J_LINEAR_Y] = ox + px, oy + py
-        columns[J_ANGULAR], columns[J_MOTOR], columns[J_LOWER], columns[J_UPPER] = weld_impulse, motor, *limits
+        columns[J_LINEAR_X], columns[J_LINEAR_Y] = lam[J_LINEAR_X] + px, lam[J_LINEAR_Y] + py
+        columns[J_ANGULAR], columns[J_MOTOR] = lam[J_ANGULAR] + pw, motor
+        columns[J_LOWER], columns[J_UPPER] = lower, upper
         impulse = impulse.at[j].set(jnp.stack(columns))
-        vel = Vel(vel.x + sa * (vax - va0[0]) + sb * (vbx - vb0[0]),
-                  vel.y + sa * (vay - va0[1]) + sb * (vby - vb0[1]),
-                  vel.w + sa * (wa - va0[2]) + sb * (wb - vb0[2]))
+        vel = Vel(vel.x - sa * (ma * px) + sb * (mb * px),
+                  vel.y - sa * (ma * py) + sb * (mb * py),
+                  vel.w + sa * dwa + sb * dwb)
         return vel, impulse
 
     return jax.lax.fori_loop(0, impulse.shape[0], one_joint, (vel, impulse))

@@ -39,6 +39,37 @@ def rotate(c, s, x, y):
     return c * x - s * y, s * x + c * y
 
 
+def pick(sel, x):
+    """x at the body a one-hot row selects: sel and x (M, *batch) -> (*batch).
+
+    A masked sum rather than `sel @ x` so it also works on batch-last arrays (step.py).
+    Only one term is non-zero, so the result is exact.
+    """
+    return jnp.sum(sel * x, axis=0)
+
+
+def pick_rows(sel, x):
+    """Row by row `pick`: sel (R, M, *batch), x (M, *batch) -> (R, *batch)."""
+    return jnp.sum(sel * x[None], axis=1)
+
+
+def stored(token, fn, *args):
+    """fn(*args), computed once and kept in memory for every consumer.
+
+    XLA's CPU fusion copies a chain of elementwise operations into each of its consumers, so
+    an impulse read by six velocity updates was computed six times (and a chain of such
+    stages multiplies). `lax.optimization_barrier` does not stop it: the CPU pipeline removes
+    barriers before fusing. A conditional's branch is a computation of its own, so its
+    results are stored. `token` is a traced non-negative integer (a loop index): the
+    condition is always true, but XLA cannot know that and keeps the conditional.
+    """
+
+    def zeros(*a):
+        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(fn, *a))
+
+    return jax.lax.cond(token >= 0, fn, zeros, *args)
+
+
 def safe_inverse(x):
     """1 / x, and 0 where x is 0 (a constraint between two static bodies)."""
     nonzero = x > 0.0

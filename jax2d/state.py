@@ -187,6 +187,9 @@ class SolverConfig:
     # The first `num_static` polygons are always static (the public Kinetix walls);
     # pairs among them are never checked.
     num_static: int = 0
+    # Batches larger than this are stepped in equal parts of at most this many scenes, one part
+    # after the other, so each part's constraint data stays in the CPU's cache (step.step_batch).
+    chunk: int = 256
 
 
 def empty_state(capacity: Capacity, gravity=(0.0, -9.81)) -> SimState:

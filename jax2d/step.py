@@ -62,6 +62,26 @@ def step_batch(states: SimState, params: SimParams, motor_actions: jax.Array, th
     """
     B = states.bodies.active.shape[0]
     params = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, jnp.float32), (B,)), params)
+    chunks = -(-B // config.chunk)
+    if chunks == 1 or B % chunks:
+        return _step_chunk(states, params, motor_actions, thruster_actions, config)
+    # Step the batch in `chunks` equal parts one after the other, so a part's constraint rows stay
+    # in the CPU's cache. Part c holds scenes c, c + chunks, c + 2 chunks, ...: a split of the batch
+    # axis over devices (kinetix.devices) then splits every part the same way.
+    size = B // chunks
+
+    def split(x):
+        return jnp.moveaxis(x.reshape((size, chunks) + x.shape[1:]), 1, 0)
+
+    def join(x):
+        return jnp.moveaxis(x, 0, 1).reshape((B,) + x.shape[2:])
+
+    parts = jax.tree.map(split, (states, params, motor_actions, thruster_actions))
+    return jax.tree.map(join, jax.lax.map(lambda part: _step_chunk(*part, config), parts))
+
+
+def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_actions, config: SolverConfig):
+    """step_batch on one part of the batch (params already per scene)."""
     prep = jax.vmap(lambda s, p, m, t: _prepare(s, p, m, t, config))(states, params, motor_actions, thruster_actions)
     layout = contact_layout(states.num_polygons, states.num_circles, config.num_static)
     loop = jax.tree.map(lambda x: jnp.moveaxis(x, 0, -1), prep.loop)

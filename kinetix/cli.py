@@ -73,6 +73,9 @@ def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_step
     parser.add_argument("--level", metavar="FILE", help=level_help)
     parser.add_argument("--steps", type=positive_int, default=default_steps,
                         help=f"{unit} steps per measurement (default: {default_steps})")
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="CPU devices to split each batch over (default: one per core; 1 = a single "
+                             "computation on one core). A batch they do not divide runs on one device.")
 
 
 def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:
@@ -318,6 +321,10 @@ def main(argv: list[str] | None = None) -> int:
     except CommandUnavailable as error:
         print(f"kinetix {' '.join(command.path)} is not available yet: {error}", file=sys.stderr)
         return 2
+    if getattr(args, "devices", False) is not False:  # before JAX starts: XLA reads the flag once
+        from kinetix.devices import request_cpu_devices
+
+        request_cpu_devices(args.devices)
     if command.uses_jax:
         from kinetix.jaxcache import enable_compilation_cache
 

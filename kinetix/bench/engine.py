@@ -2,7 +2,8 @@
 
 Two ways of running the step are measured, because the project uses both:
 - batched rollout (training): B scenes under vmap, `steps` steps inside one jitted lax.scan;
-  steps_per_s = B * steps / seconds of one run, excluding compilation (see REPEAT_BELOW_S).
+  steps_per_s = B * steps / seconds of one run, excluding compilation (see REPEAT_BELOW_S). The batch is
+  split over the CPU devices (`--devices`, default one per core; see kinetix.devices) when they divide it.
 - Python loop (interactive server): one scene, one jitted step per call, blocking on each
   result as the server does every frame; latency_ms is the mean per call.
 
@@ -120,11 +121,13 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
     import numpy as np
 
     from jax2d import step
+    from kinetix.devices import batch_devices, shard_batch
 
-    scenes = workload.make_batch(batch)
+    scenes = shard_batch(workload.make_batch(batch), batch)
     rng = np.random.default_rng(SEED)
     motor = jnp.asarray(rng.uniform(-1.0, 1.0, (steps, batch, scenes.num_joints)), jnp.float32)
     thrust = jnp.asarray(rng.uniform(0.0, 1.0, (steps, batch, scenes.num_thrusters)), jnp.float32)
+    motor, thrust = shard_batch((motor, thrust), batch, axis=1)
     params = _array_params(workload.params)
     step_batch = jax.vmap(lambda s, p, m, t: step(s, p, m, t, config=workload.config), in_axes=(0, None, 0, 0))
 
@@ -153,6 +156,7 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
         "steps_per_s": batch * steps / seconds,
         "seconds": seconds,
         "compile_s": compile_s,
+        "devices": batch_devices(batch),
         "finite": _all_finite(final),
     }
 
@@ -234,6 +238,7 @@ def benchmark(
     record({
         "what": "engine",
         "peak_rss_mb": peak_rss_mb(),
+        "devices": jax.device_count(),
         "jax": jax.__version__,
         "backend": jax.default_backend(),
         "compile_cache": "disabled" if cold else "allowed",
@@ -249,14 +254,16 @@ _HEADER = f"{'size':<6}{'batch':>7}  {'mode':<12}{'steps/s':>12}{'ms/call':>10}{
 def table_row(result: dict) -> str:
     """One line of the readable table for a result of `benchmark`."""
     if "peak_rss_mb" in result:
-        return f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']})"
+        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}, "
+                f"{result['devices']} devices)")
     warning = "" if result["finite"] else "  NON-FINITE STATE"
     if result.get("mode") == "python_loop":
         cells = f"{'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"
     else:
         ms_per_call = 1000.0 * result["batch"] / result["steps_per_s"]  # one batched step
         cells = f"{'scan':<12}{result['steps_per_s']:>12,.0f}{ms_per_call:>10.3f}"
-    return f"{result['size']:<6}{result['batch']:>7}  {cells}{result['compile_s']:>11.2f}{warning}"
+    devices = f"  ({result['devices']} devices)" if result.get("devices", 1) > 1 else ""
+    return f"{result['size']:<6}{result['batch']:>7}  {cells}{result['compile_s']:>11.2f}{devices}{warning}"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -3,7 +3,8 @@
 What is measured, per level (one per size class by default):
 - batched rollout (training): B copies of the environment under vmap, `steps` agent steps inside one
   jitted lax.scan, with symbolic-entity observations, uniformly random multi-discrete actions and
-  auto-reset; steps_per_s = B * steps / seconds of one run, excluding compilation;
+  auto-reset; steps_per_s = B * steps / seconds of one run, excluding compilation; the batch is split
+  over the CPU devices (`--devices`, default one per core) when they divide it;
 - Python loop (the interactive path): one `env.step` per call at batch 1, blocking on each result;
 - cold compile seconds of one jitted `env.step` and one jitted `env.reset` at batch 1;
 - the JAX pixel renderer: ms per frame at batch 1 from a Python loop and per frame inside a vmapped batch,
@@ -56,13 +57,15 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
     import jax
 
     from kinetix.actions import sample_random_action
+    from kinetix.devices import batch_devices, constrain_batch
 
     env, params = _make_env(level_file)
     action_type = env.config.action
 
     def rollout(key, params):
-        keys = jax.random.split(key, batch)
+        keys = constrain_batch(jax.random.split(key, batch), batch)
         _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+        states = constrain_batch(states, batch)
 
         def one_step(carry, _):
             states, key = carry
@@ -70,6 +73,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
             actions = jax.vmap(lambda k: sample_random_action(k, action_type))(jax.random.split(act_key, batch))
             obs, states, reward, terminated, truncated, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
                 jax.random.split(step_key, batch), states, actions, params)
+            states = constrain_batch(states, batch)
             return (states, key), (reward.sum(), (terminated | truncated).sum())
 
         (states, _), (rewards, ends) = jax.lax.scan(one_step, (states, key), None, length=steps)
@@ -99,6 +103,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
         "steps_per_s": batch * steps / seconds,
         "seconds": seconds,
         "compile_s": compile_s,
+        "devices": batch_devices(batch),
         "episodes_ended": int(episodes_ended),
         "finite": _finite(states),
     }
@@ -221,7 +226,8 @@ def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: 
             record(measure_python_loop(level_file, name, loop_calls, cold))
             for resolution in pixel_resolutions:
                 record(measure_renderer(level_file, name, resolution, cold=cold))
-    record({"what": "env", "peak_rss_mb": peak_rss_mb(), "jax": jax.__version__, "backend": jax.default_backend(),
+    record({"what": "env", "peak_rss_mb": peak_rss_mb(), "devices": jax.device_count(),
+            "jax": jax.__version__, "backend": jax.default_backend(),
             "compile_cache": "disabled" if cold else "allowed"})
     return results
 
@@ -234,7 +240,8 @@ _HEADER = f"{'size':<5}{'level':<24}{'batch':>6}  {'mode':<12}{'steps/s':>12}{'m
 def table_row(result: dict) -> str:
     """One line of the readable table for a result of `benchmark`."""
     if "peak_rss_mb" in result:
-        return f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']})"
+        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}, "
+                f"{result['devices']} devices)")
     head = f"{result['size']:<5}{result['level'][:23]:<24}"
     if result.get("mode") == "pixels":
         return (f"{head}{'':>6}  {'pixels ' + str(result['resolution']):<12}{'':>12}{result['ms_per_frame']:>10.3f}"
@@ -245,8 +252,9 @@ def table_row(result: dict) -> str:
         return (f"{head}{1:>6}  {'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"
                 f"{result['step_compile_s']:>11.2f}  (reset compile {result['reset_compile_s']:.2f} s){warning}")
     ms_per_call = 1000.0 * result["batch"] / result["steps_per_s"]
+    devices = f"  ({result['devices']} devices)" if result.get("devices", 1) > 1 else ""
     return (f"{head}{result['batch']:>6}  {'scan':<12}{result['steps_per_s']:>12,.0f}{ms_per_call:>10.3f}"
-            f"{result['compile_s']:>11.2f}{warning}")
+            f"{result['compile_s']:>11.2f}{devices}{warning}")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -12,6 +12,7 @@ Defaults throughout: dt = 1/60, SimParams() and SolverConfig() (4 substeps).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -477,6 +478,29 @@ def random_actions(rng: np.random.Generator, n_steps: int, batch: tuple[int, ...
     motors = rng.uniform(-1, 1, (n_steps, *batch, SMALL.joints)).astype(np.float32)
     thrusts = rng.uniform(0, 1, (n_steps, *batch, SMALL.thrusters)).astype(np.float32)
     return motors, thrusts
+
+
+def test_large_batches_stepped_in_parts_equal_one_pass():
+    """step_batch steps a batch larger than SolverConfig.chunk in equal parts, one after the other
+    (interleaved: part c holds scenes c, c + parts, ...). That only reorders the work, so 20 steps of
+    8 scenes in 4 parts of 2 equal 20 steps in one pass, bitwise, and a batch the parts do not
+    divide (7 scenes) falls back to one pass."""
+    motors, thrusts = random_actions(np.random.default_rng(5), 20, (8,))
+    whole, parts = jax2d.SolverConfig(), jax2d.SolverConfig(chunk=2)
+
+    @functools.partial(jax.jit, static_argnames="config")
+    def rollout(states, motors, thrusts, config):
+        def one(s, a):
+            return jax2d.step_batch(s, PARAMS, a[0], a[1], config=config), None
+        return jax.lax.scan(one, states, (motors, thrusts))[0]
+
+    for batch in (8, 7):
+        states = scenes.stack(small_random_scenes(batch))
+        m, t = jnp.asarray(motors[:, :batch]), jnp.asarray(thrusts[:, :batch])
+        a, b = rollout(states, m, t, whole), rollout(states, m, t, parts)
+        assert float(np.max(np.abs(np.asarray(a.bodies.position) - np.asarray(states.bodies.position)))) > 1e-3
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def test_vmap_equals_separate_runs():

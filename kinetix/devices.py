@@ -1,0 +1,70 @@
+"""Spread a batch of scenes over the CPU's cores.
+
+XLA runs one computation on about one core of the CPU. Asking it for one CPU device per core
+(`--xla_force_host_platform_device_count`) and splitting the batch axis over those devices
+runs the halves side by side; every scene is independent, so no data moves between them
+inside a step. XLA reads the flag once, when JAX starts its backend, so `request_cpu_devices`
+must run before the first computation; the rest works with whatever devices exist.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count"
+BATCH_AXIS = "batch"
+
+
+def request_cpu_devices(count: int | None = None) -> None:
+    """Ask XLA for `count` CPU devices (default: one per core) before JAX starts.
+
+    Leaves XLA_FLAGS alone when it already sets the device count (the caller's choice wins),
+    and warns when JAX's backend is already running, since the flag would then have no effect.
+    """
+    count = count or os.cpu_count() or 1
+    flags = os.environ.get("XLA_FLAGS", "")
+    if DEVICE_COUNT_FLAG in flags or count == 1:
+        return
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        warnings.warn(f"JAX is already running; {DEVICE_COUNT_FLAG}={count} is ignored", stacklevel=2)
+        return
+    os.environ["XLA_FLAGS"] = f"{flags} {DEVICE_COUNT_FLAG}={count}".strip()
+
+
+def batch_devices(batch: int) -> int:
+    """How many devices a batch of this size is split over: all of them when they divide it, else 1."""
+    import jax
+
+    count = jax.device_count()
+    return count if batch % count == 0 else 1
+
+
+def batch_sharding(batch: int, axis: int = 0):
+    """A sharding that splits array axis `axis` (of size `batch`) over the devices, or None for one device."""
+    import jax
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    count = batch_devices(batch)
+    if count == 1:
+        return None
+    mesh = Mesh(jax.devices()[:count], (BATCH_AXIS,))
+    return NamedSharding(mesh, PartitionSpec(*([None] * axis), BATCH_AXIS))
+
+
+def shard_batch(tree, batch: int, axis: int = 0):
+    """Place every leaf of `tree` (each with the batch at `axis`) split over the devices. Outside jit."""
+    import jax
+
+    sharding = batch_sharding(batch, axis)
+    return tree if sharding is None else jax.device_put(tree, sharding)
+
+
+def constrain_batch(tree, batch: int, axis: int = 0):
+    """Inside jit: ask that every leaf of `tree` be split over the devices along `axis`."""
+    import jax
+
+    sharding = batch_sharding(batch, axis)
+    return tree if sharding is None else jax.lax.with_sharding_constraint(tree, sharding)

@@ -11,9 +11,11 @@
     restitution             bounce where points hit faster than the threshold
     store                   impulses for the next step; clamp and NaN guard
 
-Inside the step every body quantity is its own 1-D array over M padded bodies
+Inside the step every body quantity is its own array over M padded bodies
 (math2d.Vel / Pose); M is the body count rounded up to even, the extra body a
-static dummy that padding contact slots point at.
+static dummy that padding contact slots point at. The narrow phase, prepare and
+store run per scene; the substeps and restitution run on a batch of scenes with
+the batch as the last axis, (M, B) per body (see step_batch).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def step(state: SimState, params: SimParams, motor_actions: jax.Array, thruster_
 
     Under `jax.vmap` this runs as `step_batch` (a custom batching rule), which lays the
     solver's arrays out batch-last; a single call is `step_batch` on a batch of one, so
-    batched and single runs execute the same program.
+    batched and single runs execute the same code.
     """
     return _vmappable(config)(state, params, motor_actions, thruster_actions)
 

@@ -42,16 +42,23 @@ def batch_devices(batch: int) -> int:
     return count if batch % count == 0 else 1
 
 
+def local_mesh(devices: list | None = None):
+    """A 1-D mesh over `devices` (default: all local devices) with axis name BATCH_AXIS."""
+    import jax
+    import numpy as np
+    from jax.sharding import Mesh
+
+    return Mesh(np.asarray(devices if devices is not None else jax.local_devices()), (BATCH_AXIS,))
+
+
 def batch_sharding(batch: int, axis: int = 0):
     """A sharding that splits array axis `axis` (of size `batch`) over the devices, or None for one device."""
     import jax
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+    from jax.sharding import NamedSharding, PartitionSpec
 
-    count = batch_devices(batch)
-    if count == 1:
+    if batch_devices(batch) == 1:
         return None
-    mesh = Mesh(jax.devices()[:count], (BATCH_AXIS,))
-    return NamedSharding(mesh, PartitionSpec(*([None] * axis), BATCH_AXIS))
+    return NamedSharding(local_mesh(jax.devices()), PartitionSpec(*([None] * axis), BATCH_AXIS))
 
 
 def shard_batch(tree, batch: int, axis: int = 0):

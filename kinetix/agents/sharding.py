@@ -13,12 +13,9 @@ from typing import Any
 import jax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from kinetix.devices import BATCH_AXIS, local_mesh
 
-def local_mesh(devices: list | None = None) -> Mesh:
-    """A 1-D mesh over `devices` (default: all local devices) with axis name "batch"."""
-    import numpy as np
-
-    return Mesh(np.asarray(devices if devices is not None else jax.local_devices()), ("batch",))
+__all__ = ["batch_sharder", "local_mesh"]
 
 
 def batch_sharder(mesh: Mesh, batch_size: int):
@@ -28,7 +25,7 @@ def batch_sharder(mesh: Mesh, batch_size: int):
     count = mesh.devices.size
     if batch_size % count:
         raise ValueError(f"num_envs ({batch_size}) must be divisible by the number of devices ({count})")
-    split = NamedSharding(mesh, PartitionSpec("batch"))
+    split = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
 
     def shard(tree: Any) -> Any:
         def one(x):

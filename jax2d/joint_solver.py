@@ -81,7 +81,25 @@ def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
     return JointFrame(rax, ray, rbx, rby, cx, cy, ab - aa - joints.ref_angle)
 
 
-def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel) -> Vel:
+class Schedule(NamedTuple):
+    """Which joint slots the loops visit: the first `count` entries of `order`, in slot order."""
+
+    order: jax.Array  # (J,) int32: the live slots first (ascending), then the others
+    count: jax.Array  # () int32
+
+
+def schedule(jc: JointConstraints) -> Schedule:
+    """The joint slots active in any scene of the batch (jc batch-last).
+
+    An inactive slot has zero selections, masses and impulses, so solving it changes
+    nothing; the loops skip it (levels rarely fill their joint capacity).
+    """
+    active = jc.revolute + jc.weld
+    live = jnp.any(active > 0.0, axis=tuple(range(1, active.ndim)))
+    return Schedule(jnp.argsort(~live, stable=True).astype(jnp.int32), jnp.sum(live, dtype=jnp.int32))
+
+
+def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, plan: Schedule) -> Vel:
     """Re-apply every joint's accumulated impulses before solving, joint by joint (a fixed order
     of additions, so batched and single runs agree bitwise)."""
     if impulse.shape[0] == 0:
@@ -98,7 +116,7 @@ def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel) -> Vel:
                    vel.y - sa * (jc.ma[j] * py) + sb * (jc.mb[j] * py),
                    vel.w + sa * ta + sb * tb)
 
-    return jax.lax.fori_loop(0, impulse.shape[0], one_joint, vel)
+    return jax.lax.fori_loop(0, plan.count, lambda i, vel: one_joint(plan.order[i], vel), vel)
 
 
 def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool):
@@ -115,8 +133,9 @@ def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool)
 
 
 def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Softness, inv_h,
-          use_bias: bool) -> tuple[Vel, jax.Array]:
-    """One Gauss-Seidel pass over the joints (a loop, so it compiles once): motor, limits, then point / weld."""
+          use_bias: bool, plan: Schedule) -> tuple[Vel, jax.Array]:
+    """One Gauss-Seidel pass over the live joints (see schedule; a loop, so it compiles once):
+    motor, limits, then point / weld."""
     if impulse.shape[0] == 0:
         return vel, impulse
 
@@ -200,4 +219,4 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
                   vel.w + sa * dwa + sb * dwb)
         return vel, impulse
 
-    return jax.lax.fori_loop(0, impulse.shape[0], one_joint, (vel, impulse))
+    return jax.lax.fori_loop(0, plan.count, lambda i, carry: one_joint(plan.order[i], carry), (vel, impulse))

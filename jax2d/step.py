@@ -87,8 +87,9 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     prep = jax.vmap(lambda s, p, m, t: _prepare(s, p, m, t, config))(states, params, motor_actions, thruster_actions)
     layout = contact_layout(states.num_polygons, states.num_circles, config.num_static)
     loop = jax.tree.map(lambda x: jnp.moveaxis(x, 0, -1), prep.loop)
-    pose, vel, cimp, jimp = _substeps(layout, loop, config)
-    vel, cimp = contact_solver.restitution(layout, loop.const, cimp, vel, loop.restitution_threshold)
+    colours = contact_solver.schedule(loop.const)
+    pose, vel, cimp, jimp = _substeps(layout, loop, colours, config)
+    vel, cimp = contact_solver.restitution(layout, loop.const, cimp, vel, loop.restitution_threshold, colours)
     pose, vel, cimp, jimp = jax.tree.map(lambda x: jnp.moveaxis(x, -1, 0), (pose, vel, cimp, jimp))
     return jax.vmap(_store)(states, params, pose, vel, jax.vmap(contact_solver.unpack_impulses)(cimp), jimp,
                             prep.manifold, prep.valid, prep.loop.dyn)
@@ -186,28 +187,33 @@ def _prepare(state: SimState, params: SimParams, motor_actions, thruster_actions
     return Prepared(loop, manifold, valid)
 
 
-def _substeps(layout: ContactLayout, d: LoopData, config: SolverConfig):
-    """The substep loop on batch-last arrays: every function here broadcasts over trailing batch axes."""
+def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedule, config: SolverConfig):
+    """The substep loop on batch-last arrays: every function here broadcasts over trailing batch axes.
+
+    colours: the colours with a point in some scene (contact_solver.schedule); the joint
+    loops likewise visit only the slots active in some scene (joint_solver.schedule).
+    """
     h = d.h
     inv_h = 1.0 / h
+    joints = joint_solver.schedule(d.jc)
 
     def substep(_, carry):
         pose, vel, cimp, jimp = carry
         vel = integrate_velocities(vel, pose, d.dyn, d.inv_mass, d.inv_inertia, d.gravity, d.forces, h)
         frame = joint_solver.frame(d.joints, d.jc, pose)
-        vel = joint_solver.warm_start(d.jc, frame, jimp, vel)
-        vel = contact_solver.warm_start(layout, d.const, cimp, vel)
-        vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=True)
+        vel = joint_solver.warm_start(d.jc, frame, jimp, vel, joints)
+        vel = contact_solver.warm_start(layout, d.const, cimp, vel, colours)
+        vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, True, joints)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0)
         vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                         d.max_push_velocity, use_bias=True)
+                                         d.max_push_velocity, True, colours)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(d.joints, d.jc, pose)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0)
         for _ in range(config.relax_iterations):
-            vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=False)
+            vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, False, joints)
             vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                             d.max_push_velocity, use_bias=False)
+                                             d.max_push_velocity, False, colours)
         return pose, vel, cimp, jimp
 
     return jax.lax.fori_loop(0, config.substeps, substep, (d.pose0, d.vel0, d.cimp, d.jimp))

@@ -75,7 +75,10 @@ def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_step
                         help=f"{unit} steps per measurement (default: {default_steps})")
     parser.add_argument("--devices", type=positive_int, default=None,
                         help="CPU devices to split each batch over (default: one per core; 1 = a single "
-                             "computation on one core). A batch they do not divide runs on one device.")
+                             "computation on one core). A batch they do not divide runs on one device. The "
+                             "Python loop always runs in a one-device process, as an interactive session does.")
+    # Internal: measure only the Python loop (the one-device child process of the benchmark).
+    parser.add_argument("--loop-only", action="store_true", help=argparse.SUPPRESS)
 
 
 def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:

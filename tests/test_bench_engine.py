@@ -64,6 +64,7 @@ def test_tiny_benchmark_results_and_json_lines():
     assert {"what", "size", "batch", "mode", "latency_ms", "compile_s"} <= loop.keys()
     assert (loop["what"], loop["size"], loop["batch"], loop["mode"]) == ("engine", "s", 1, "python_loop")
     assert loop["latency_ms"] > 0 and loop["compile_s"] > 0 and loop["finite"] is True
+    assert loop["pytree_latency_ms"] > 0  # the plain pytree step, beside the packed one
     (last,) = summary
     assert last["what"] == "engine" and last["peak_rss_mb"] > 10
     assert "size" not in last
@@ -86,3 +87,13 @@ def test_level_option_fails_clearly_without_the_level_loader(capsys, monkeypatch
     args = argparse.Namespace(level="some_level.json", json=False, sizes=["s"], batches=[1], steps=5)
     assert engine.run(args) == 2
     assert engine.NO_LEVEL_LOADER in capsys.readouterr().err
+
+
+def test_python_loop_runs_in_a_one_device_child_when_batches_use_two(monkeypatch):
+    """With the batches split over 2 devices, the loop is measured in a child process with 1 (as the server runs)."""
+    from kinetix.devices import DEVICE_COUNT_FLAG
+
+    monkeypatch.setenv("XLA_FLAGS", f"{DEVICE_COUNT_FLAG}=2")  # the child must not inherit this
+    (loop,) = engine.one_device_loops("engine", ["--sizes", "s"])
+    assert (loop["what"], loop["size"], loop["mode"]) == ("engine", "s", "python_loop")
+    assert loop["devices"] == 1 and loop["latency_ms"] > 0 and loop["finite"] is True

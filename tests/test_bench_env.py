@@ -35,6 +35,7 @@ def test_tiny_benchmark_results_and_json_lines():
         assert line["episodes_ended"] >= batch
     assert (loop["mode"], loop["batch"], loop["calls"]) == ("python_loop", 1, 5)
     assert loop["latency_ms"] > 0 and loop["step_compile_s"] > 0 and loop["reset_compile_s"] > 0
+    assert loop["pytree_latency_ms"] > 0 and loop["compact_compile_s"] > 0
     assert (pixels["mode"], pixels["resolution"]) == ("pixels", 32)
     assert pixels["ms_per_frame"] > 0 and pixels["ms_per_frame_batched"] > 0
     assert summary["what"] == "env" and summary["peak_rss_mb"] > 10

@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import resource
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -162,44 +164,77 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
 
 
 def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool = True) -> dict:
-    """Mean milliseconds per call of the jitted single-scene step, blocking on every result, and its compile time."""
+    """Mean milliseconds per call of the jitted single-scene step, blocking on every result, and its compile time.
+
+    Two loops: the packed one (`jax2d.step_compact`: state and params in one buffer each, the way an
+    interactive session should hold them) gives latency_ms and compile_s; the plain pytree `jax2d.step`
+    gives pytree_latency_ms. Both start from the same state and take the same actions.
+    """
     import jax
     import numpy as np
 
-    from jax2d import step
+    from jax2d import step, step_compact
+    from jax2d.compact import pack, unpack_host
 
-    state = jax.tree.map(lambda x: x[0], workload.make_batch(1))
+    scene = jax.tree.map(lambda x: x[0], workload.make_batch(1))
     rng = np.random.default_rng(SEED)
     total = LOOP_WARMUP + calls
     # Plain numpy rows, as the server receives actions from the browser each frame.
-    motor = rng.uniform(-1.0, 1.0, (total, state.num_joints)).astype(np.float32)
-    thrust = rng.uniform(0.0, 1.0, (total, state.num_thrusters)).astype(np.float32)
+    motor = rng.uniform(-1.0, 1.0, (total, scene.num_joints)).astype(np.float32)
+    thrust = rng.uniform(0.0, 1.0, (total, scene.num_thrusters)).astype(np.float32)
     params = _array_params(workload.params)
     config = workload.config
 
     if cold:
         jax.clear_caches()
-    stepper = jax.jit(step, static_argnames="config")
+    stepper = jax.jit(step_compact, static_argnames="config")
+    packed, packed_params = jax.jit(pack)(scene), jax.jit(pack)(params)
     start = time.perf_counter()
-    state = jax.block_until_ready(stepper(state, params, motor[0], thrust[0], config=config))
+    state = jax.block_until_ready(stepper(packed, packed_params, motor[0], thrust[0], config=config))
     compile_s = time.perf_counter() - start
 
-    for i in range(1, LOOP_WARMUP):
-        state = jax.block_until_ready(stepper(state, params, motor[i], thrust[i], config=config))
-    start = time.perf_counter()
-    for i in range(LOOP_WARMUP, total):
-        state = jax.block_until_ready(stepper(state, params, motor[i], thrust[i], config=config))
-    seconds = time.perf_counter() - start
+    def loop(stepper, state, params) -> tuple[float, Any]:
+        for i in range(1, LOOP_WARMUP):
+            state = jax.block_until_ready(stepper(state, params, motor[i], thrust[i], config=config))
+        start = time.perf_counter()
+        for i in range(LOOP_WARMUP, total):
+            state = jax.block_until_ready(stepper(state, params, motor[i], thrust[i], config=config))
+        return 1000.0 * (time.perf_counter() - start) / calls, state
+
+    latency_ms, state = loop(stepper, state, packed_params)
+    pytree_ms, _ = loop(jax.jit(step, static_argnames="config"), scene, params)
     return {
         "what": "engine",
         "size": workload.name,
         "batch": 1,
         "mode": "python_loop",
         "calls": calls,
-        "latency_ms": 1000.0 * seconds / calls,
+        "latency_ms": latency_ms,
+        "pytree_latency_ms": pytree_ms,
         "compile_s": compile_s,
-        "finite": _all_finite(state),
+        "devices": jax.device_count(),
+        "finite": _all_finite(unpack_host(state)),
     }
+
+
+def one_device_loops(command: str, selection: list[str]) -> list[dict]:
+    """The Python-loop results of `kinetix bench <command> <selection>`, measured in a child process with one device.
+
+    With two XLA CPU devices in the process, a single-scene call measured 20-25 % slower on this 2-core
+    machine than with one, and an interactive process (the server, a person's loop) has one. So when the
+    batches run on several devices, the loops run in a process like theirs.
+    """
+    from kinetix.devices import DEVICE_COUNT_FLAG
+
+    flags = [flag for flag in os.environ.get("XLA_FLAGS", "").split() if not flag.startswith(DEVICE_COUNT_FLAG)]
+    env = {**os.environ, "XLA_FLAGS": " ".join(flags)}
+    cmd = [sys.executable, "-m", "kinetix", "bench", command, "--json", "--devices", "1", "--loop-only", *selection]
+    child = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+    results = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
+    loops = [result for result in results if result.get("mode") == "python_loop"]
+    if child.returncode not in (0, 1) or not loops:
+        raise RuntimeError(f"the one-device loop measurement failed ({' '.join(cmd)}):\n{child.stderr[-2000:]}")
+    return loops
 
 
 def peak_rss_mb() -> float:
@@ -216,6 +251,7 @@ def benchmark(
     loop_calls: int = LOOP_CALLS,
     report: Callable[[dict], None] = lambda result: None,
     cold: bool = True,
+    loops: bool = True,
 ) -> list[dict]:
     """Measure every workload at every batch size, then its Python-loop latency; end with a peak-RSS summary.
 
@@ -234,7 +270,8 @@ def benchmark(
         for workload in workloads:
             for batch in batches:
                 record(measure_rollout(workload, batch, steps, cold))
-            record(measure_python_loop(workload, loop_calls, cold))
+            if loops:
+                record(measure_python_loop(workload, loop_calls, cold))
     record({
         "what": "engine",
         "peak_rss_mb": peak_rss_mb(),
@@ -259,6 +296,8 @@ def table_row(result: dict) -> str:
     warning = "" if result["finite"] else "  NON-FINITE STATE"
     if result.get("mode") == "python_loop":
         cells = f"{'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"
+        if "pytree_latency_ms" in result:
+            warning = f"  (pytree step {result['pytree_latency_ms']:.3f} ms){warning}"
     else:
         ms_per_call = 1000.0 * result["batch"] / result["steps_per_s"]  # one batched step
         cells = f"{'scan':<12}{result['steps_per_s']:>12,.0f}{ms_per_call:>10.3f}"
@@ -286,11 +325,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"jax2d engine, {args.steps} steps per rollout; compile times are cold "
               "(persistent compilation cache disabled, in-memory caches cleared)")
         print("scan: B scenes under vmap in one jitted lax.scan, steps/s = B * steps / s, ms/call = one batched step")
-        print("python loop: one scene, one jitted step per call, blocking each call; compile s = first call")
+        print("python loop: one scene, one jitted step per call, blocking each call; compile s = first call;")
+        print("  state and params packed in one buffer each (jax2d.step_compact); the plain pytree step in brackets")
         print(_HEADER, flush=True)
 
         def report(result: dict) -> None:
             print(table_row(result), flush=True)
 
-    results = benchmark(workloads, args.batches, args.steps, report=report)
+    import jax
+
+    loop_only = getattr(args, "loop_only", False)
+    split = not loop_only and jax.device_count() > 1  # then the loops run in a one-device child (one_device_loops)
+    results = benchmark(workloads, [] if loop_only else args.batches, args.steps, report=report, loops=not split)
+    if split:
+        for result in one_device_loops("engine", ["--level", args.level] if args.level
+                                       else ["--sizes", ",".join(args.sizes)]):
+            results.append(result)
+            report(result)
     return 0 if all(result.get("finite", True) for result in results) else 1

@@ -5,7 +5,8 @@ What is measured, per level (one per size class by default):
   jitted lax.scan, with symbolic-entity observations, uniformly random multi-discrete actions and
   auto-reset; steps_per_s = B * steps / seconds of one run, excluding compilation; the batch is split
   over the CPU devices (`--devices`, default one per core) when they divide it;
-- Python loop (the interactive path): one `env.step` per call at batch 1, blocking on each result;
+- Python loop (the interactive path): one env step per call at batch 1, blocking on each result, with
+  state and params packed in one buffer each (`env.step_compact`), and the plain pytree `env.step`;
 - cold compile seconds of one jitted `env.step` and one jitted `env.reset` at batch 1;
 - the JAX pixel renderer: ms per frame at batch 1 from a Python loop and per frame inside a vmapped batch,
   at the pixel-observation resolution and at 256 px, with its cold compile seconds.
@@ -23,7 +24,15 @@ import sys
 import time
 from pathlib import Path
 
-from kinetix.bench.engine import LOOP_CALLS, LOOP_WARMUP, REPEAT_BELOW_S, SEED, cold_compiles, peak_rss_mb
+from kinetix.bench.engine import (
+    LOOP_CALLS,
+    LOOP_WARMUP,
+    REPEAT_BELOW_S,
+    SEED,
+    cold_compiles,
+    one_device_loops,
+    peak_rss_mb,
+)
 
 REPO_DIR = Path(__file__).resolve().parents[2]
 SHARED_LEVELS = REPO_DIR.parent / "shared" / "kinetix-levels"
@@ -110,10 +119,16 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
 
 
 def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bool = True) -> dict:
-    """Mean ms per `env.step` call at batch 1 from Python, and cold compile seconds of step and reset."""
+    """Mean ms per env step at batch 1 from Python, and cold compile seconds of step and reset.
+
+    latency_ms is the packed loop (`env.step_compact`: one buffer in and out, see jax2d.compact),
+    pytree_latency_ms the plain `env.step` on pytrees; step_compile_s and reset_compile_s are the
+    plain `env.step` / `env.reset`, compact_compile_s the packed step.
+    """
     import jax
     import numpy as np
 
+    from jax2d.compact import pack, unpack_host
     from kinetix.actions import sample_random_action
 
     env, params = _make_env(level_file)
@@ -132,13 +147,28 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
     out = jax.block_until_ready(step(keys[0], state, actions[0], params))
     step_compile_s = time.perf_counter() - start
 
-    state = out[1]
-    for i in range(1, LOOP_WARMUP):
-        state = jax.block_until_ready(step(keys[i], state, actions[i], params))[1]
+    def loop(step, carried, params, carry) -> tuple[float, object]:
+        """Time the calls; `carry(output)` is what the next call takes."""
+        for i in range(1, LOOP_WARMUP):
+            carried = carry(jax.block_until_ready(step(keys[i], carried, actions[i], params)))
+        start = time.perf_counter()
+        for i in range(LOOP_WARMUP, total):
+            carried = carry(jax.block_until_ready(step(keys[i], carried, actions[i], params)))
+        return 1000.0 * (time.perf_counter() - start) / calls, carried
+
+    pytree_ms, state = loop(step, out[1], params, carry=lambda output: output[1])
+    finite = _finite(state)
+
+    # The packed loop (env.step_compact), the way a Python loop at batch 1 should call the env.
+    if cold:
+        jax.clear_caches()
+    packed_params = jax.jit(pack)(params)
+    reset_compact, step_compact = jax.jit(env.reset_compact), jax.jit(env.step_compact)
+    packed = jax.block_until_ready(reset_compact(keys[0], packed_params))
     start = time.perf_counter()
-    for i in range(LOOP_WARMUP, total):
-        state = jax.block_until_ready(step(keys[i], state, actions[i], params))[1]
-    seconds = time.perf_counter() - start
+    packed = jax.block_until_ready(step_compact(keys[0], packed, actions[0], packed_params))
+    compact_compile_s = time.perf_counter() - start
+    latency_ms, packed = loop(step_compact, packed, packed_params, carry=lambda output: output)
     return {
         "what": "env",
         "size": level_file.size.name,
@@ -146,11 +176,14 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
         "batch": 1,
         "mode": "python_loop",
         "calls": calls,
-        "latency_ms": 1000.0 * seconds / calls,
+        "latency_ms": latency_ms,
+        "pytree_latency_ms": pytree_ms,
         "compile_s": step_compile_s,
         "step_compile_s": step_compile_s,
         "reset_compile_s": reset_compile_s,
-        "finite": _finite(state),
+        "compact_compile_s": compact_compile_s,
+        "devices": jax.device_count(),
+        "finite": finite and _finite(unpack_host(packed).state),
     }
 
 
@@ -206,7 +239,8 @@ def _finite(tree) -> bool:
 
 
 def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: int = LOOP_CALLS,
-              pixel_resolutions=PIXEL_RESOLUTIONS, report=lambda result: None, cold: bool = True) -> list[dict]:
+              pixel_resolutions=PIXEL_RESOLUTIONS, report=lambda result: None, cold: bool = True,
+              loops: bool = True) -> list[dict]:
     """Measure each (name, LevelFile) at every batch size, its Python-loop latency and the renderer.
 
     Results go to `report` as they are measured and are returned in order, ending with a peak-RSS line.
@@ -223,7 +257,8 @@ def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: 
         for name, level_file in level_files:
             for batch in batches:
                 record(measure_rollout(level_file, name, batch, steps, cold))
-            record(measure_python_loop(level_file, name, loop_calls, cold))
+            if loops:
+                record(measure_python_loop(level_file, name, loop_calls, cold))
             for resolution in pixel_resolutions:
                 record(measure_renderer(level_file, name, resolution, cold=cold))
     record({"what": "env", "peak_rss_mb": peak_rss_mb(), "devices": jax.device_count(),
@@ -249,8 +284,10 @@ def table_row(result: dict) -> str:
                 f"{result['render_batch']})")
     warning = "" if result["finite"] else "  NON-FINITE STATE"
     if result.get("mode") == "python_loop":
+        pytree = f"; pytree env.step {result['pytree_latency_ms']:.3f} ms" if "pytree_latency_ms" in result else ""
         return (f"{head}{1:>6}  {'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"
-                f"{result['step_compile_s']:>11.2f}  (reset compile {result['reset_compile_s']:.2f} s){warning}")
+                f"{result['step_compile_s']:>11.2f}  (reset compile {result['reset_compile_s']:.2f} s{pytree})"
+                f"{warning}")
     ms_per_call = 1000.0 * result["batch"] / result["steps_per_s"]
     devices = f"  ({result['devices']} devices)" if result.get("devices", 1) > 1 else ""
     return (f"{head}{result['batch']:>6}  {'scan':<12}{result['steps_per_s']:>12,.0f}{ms_per_call:>10.3f}"
@@ -281,5 +318,15 @@ def run(args: argparse.Namespace) -> int:
         def report(result: dict) -> None:
             print(table_row(result), flush=True)
 
-    results = benchmark(level_files, args.batches, args.steps, report=report)
+    import jax
+
+    loop_only = getattr(args, "loop_only", False)
+    split = not loop_only and jax.device_count() > 1  # then the loops run in a one-device child (one_device_loops)
+    results = benchmark(level_files, [] if loop_only else args.batches, args.steps, report=report, loops=not split,
+                        pixel_resolutions=() if loop_only else PIXEL_RESOLUTIONS)
+    if split:
+        for result in one_device_loops("env", ["--level", args.level] if args.level
+                                       else ["--sizes", ",".join(args.sizes)]):
+            results.append(result)
+            report(result)
     return 0 if all(result.get("finite", True) for result in results) else 1

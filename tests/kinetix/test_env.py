@@ -14,7 +14,7 @@ import pytest
 
 from jax2d import scene
 from kinetix.actions import noop_action, sample_random_action
-from kinetix.env import EnvConfig, EnvParams, EnvState, make_env
+from kinetix.env import EnvConfig, EnvParams, EnvState, StepOutput, make_env
 from kinetix.goal import goal_distance
 from kinetix.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, LevelError, LevelParams, empty_level, make_level
 from kinetix.levels import load_level
@@ -366,3 +366,29 @@ def test_public_levels_batched_random_rollout(public_levels):
     assert np.all(np.isfinite(np.asarray(state_a.env_state.level.sim.bodies.position)))
     state_b, _ = rollout(1)
     jax.tree.map(np.testing.assert_array_equal, state_a, state_b)
+
+
+# ---------------------------------------------------------------- the packed step (one scene from Python)
+
+
+def test_packed_step_equals_step_bitwise_through_an_auto_reset(env, step, reset):
+    from jax2d.compact import layout_of, pack, unpack_host
+
+    params = EnvParams()
+    packed_params = jax.jit(pack)(params)
+    step_compact, reset_compact = jax.jit(env.step_compact), jax.jit(env.reset_compact)
+    obs, state = reset(KEY, params)
+    packed = reset_compact(KEY, packed_params)
+    # reset and step give one layout, so the packed step compiles once for both.
+    assert packed.layout == layout_of(StepOutput(*jax.eval_shape(env.step, KEY, state, NOOP, params)))
+    ended = 0
+    for t in range(1, 80):
+        key = jax.random.PRNGKey(t)
+        out = step(key, state, NOOP, params)
+        packed = step_compact(key, packed, NOOP, packed_params)
+        host = unpack_host(packed)
+        for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(tuple(host)), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), b)
+        state = out[1]
+        ended += bool(out[3] | out[4])
+    assert ended >= 1  # an episode ended, so the auto-reset path was compared too

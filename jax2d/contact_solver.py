@@ -7,7 +7,7 @@ bias; restitution runs once at the end.
 
 Slots are solved colour by colour (see pairs.py): within a colour no body
 appears twice, so a colour is one vectorised update and the sweep is an exact
-Gauss-Seidel pass. Every index used here is a compile-time constant.
+Gauss-Seidel pass. Colours without any point are skipped (see schedule).
 """
 
 from __future__ import annotations

@@ -23,8 +23,8 @@ class ContactLayout:
 
     The colours come from the circle method: the M padded bodies stand in a line,
     body 0 fixed and the others rotating one place per colour, and colour r pairs
-    line[k] with line[M - 1 - k]. Because the same rotation takes every colour to
-    the next, one loop body (a `lax.scan`) serves all colours, with no gathers.
+    line[k] with line[M - 1 - k]. The solver visits only the colours that hold a
+    contact point (contact_solver.schedule) and gathers each one's two sides by row.
     """
 
     num_bodies: int  # N = P + C

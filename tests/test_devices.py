@@ -47,6 +47,10 @@ SCRIPT = textwrap.dedent("""
         "moved": float(np.abs(np.asarray(single.bodies.position) - np.asarray(states.bodies.position)).max()),
         "max_difference": max(float(np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64)).max())
                               for a, b in zip(jax.tree.leaves(single), jax.tree.leaves(split))),
+        # per leaf: difference within 1e-4 of the leaf's largest magnitude (plus 1e-5)
+        "close": all(float(np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64)).max(initial=0.0))
+                     <= 1e-5 + 1e-4 * float(np.abs(np.asarray(a, np.float64)).max(initial=0.0))
+                     for a, b in zip(jax.tree.leaves(single), jax.tree.leaves(split))),
     }))
 """)
 
@@ -63,5 +67,8 @@ def test_batch_split_over_two_cpu_devices_equals_one_device():
     assert (result["devices_for_6"], result["devices_for_5"]) == (2, 1)  # an odd batch stays on one device
     assert result["split_over"] == 2  # the batch really ran on both
     assert result["moved"] > 1e-3  # the scenes are not at rest
-    # Same per-scene program on each device; only XLA's partitioning differs.
-    assert result["max_difference"] <= 1e-5
+    # Same per-scene solver on each device, but XLA compiles the 6-scene and the 3-scene programs apart and
+    # rounds differently; after 30 steps of contact the trajectories agree to float32 rounding grown by the
+    # contacts (measured: 1.4e-4 rad/s on angular velocities up to 5.4 rad/s), not bitwise.
+    assert result["close"], result["max_difference"]
+    assert result["max_difference"] <= 1e-3

@@ -213,19 +213,20 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedu
         pose, vel, cimp, jimp = carry
         vel = integrate_velocities(vel, pose, d.dyn, d.inv_mass, d.inv_inertia, d.gravity, d.forces, h)
         frame = joint_solver.frame(d.joints, d.jc, pose)
-        vel = joint_solver.warm_start(d.jc, frame, jimp, vel, joints)
-        vel = contact_solver.warm_start(layout, d.const, cimp, vel, colours)
-        vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, True, joints)
+        vel = joint_solver.warm_start(d.jc, frame, jimp, vel, plan=joints)
+        vel = contact_solver.warm_start(layout, d.const, cimp, vel, plan=colours)
+        vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=True, plan=joints)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0)
         vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                         d.max_push_velocity, True, colours)
+                                         d.max_push_velocity, use_bias=True, plan=colours)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(d.joints, d.jc, pose)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0)
         for _ in range(config.relax_iterations):
-            vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, False, joints)
+            vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=False,
+                                           plan=joints)
             vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                             d.max_push_velocity, False, colours)
+                                             d.max_push_velocity, use_bias=False, plan=colours)
         return pose, vel, cimp, jimp
 
     return jax.lax.fori_loop(0, config.substeps, substep, (d.pose0, d.vel0, d.cimp, d.jimp))

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 
 import jax2d
-from jax2d.compact import Compact, pack, unpack
+from jax2d.compact import Compact, layout_of, pack, unpack, update
 from jax2d.state import SimParams, SolverConfig
 from kinetix import actions as actions_module
 from kinetix import observations
@@ -212,8 +212,22 @@ class KinetixEnv:
         returns 64 (~0.3 ms at any size). Read a result on the host with `jax2d.compact.unpack_host`,
         which gives a StepOutput of numpy arrays. Equal to `step`, bitwise.
         """
-        out = self.step(key, unpack(previous).state, action, unpack(params))
-        return pack(StepOutput(*out))
+        before = unpack(previous)
+        params = unpack(params)
+        next_state, reward, terminated, truncated, info = self.transition(before.state, action, params)
+        # The state works on packed words: its leaves are contiguous in the packed StepOutput, a step
+        # rewrites only the leaves the physics changed (jax2d.compact.update), and the auto-reset is one
+        # select over the words instead of one per leaf. Selecting bits equals selecting values.
+        start = previous.layout.offsets[len(jax.tree.leaves(before.obs))]
+        state_layout = layout_of(before.state)
+        words = jax.lax.dynamic_slice_in_dim(previous.buffer, start, state_layout.size)
+        stepped = update(Compact(words, state_layout), before.state, next_state).buffer
+        fresh = pack(self.initial_state(key, params)).buffer
+        words = jnp.where(terminated | truncated, fresh, stepped)
+        state = unpack(Compact(words, state_layout))
+        head = pack(self.observe(state)).buffer
+        tail = pack((reward, terminated, truncated, info)).buffer
+        return Compact(jnp.concatenate([head, words, tail]), previous.layout)
 
     def transition(self, state: EnvState, action, params: EnvParams | None = None):
         """(next_state, reward, terminated, truncated, info): one agent step, no observation, no reset."""

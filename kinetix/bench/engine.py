@@ -3,7 +3,8 @@
 Two ways of running the step are measured, because the project uses both:
 - batched rollout (training): B scenes under vmap, `steps` steps inside one jitted lax.scan;
   steps_per_s = B * steps / seconds of one run, excluding compilation (see REPEAT_BELOW_S). The batch is
-  split over the CPU devices (`--devices`, default one per core; see kinetix.devices) when they divide it.
+  split over the CPU devices (`--devices`, default one per core; see kinetix.devices) when they divide it,
+  each device stepping its own scenes (kinetix.devices.per_device).
 - Python loop (interactive server): one scene, one jitted step per call, blocking on each
   result as the server does every frame; latency_ms is the mean per call.
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import os
 import resource
@@ -123,7 +125,7 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
     import numpy as np
 
     from jax2d import step
-    from kinetix.devices import batch_devices, shard_batch
+    from kinetix.devices import batch_devices, per_device, shard_batch
 
     scenes = shard_batch(workload.make_batch(batch), batch)
     rng = np.random.default_rng(SEED)
@@ -134,6 +136,8 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
     step_batch = jax.vmap(lambda s, p, m, t: step(s, p, m, t, config=workload.config), in_axes=(0, None, 0, 0))
 
     # Actions and params are arguments, not closed-over constants, so they are not baked into the program.
+    # Each device steps its own scenes (kinetix.devices.per_device).
+    @functools.partial(per_device, batch=batch, in_axes=(0, None, 1, 1))
     def rollout(state, params, motor, thrust):
         return jax.lax.scan(lambda s, a: (step_batch(s, params, *a), None), state, (motor, thrust))[0]
 

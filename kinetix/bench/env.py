@@ -4,7 +4,8 @@ What is measured, per level (one per size class by default):
 - batched rollout (training): B copies of the environment under vmap, `steps` agent steps inside one
   jitted lax.scan, with symbolic-entity observations, uniformly random multi-discrete actions and
   auto-reset; steps_per_s = B * steps / seconds of one run, excluding compilation; the batch is split
-  over the CPU devices (`--devices`, default one per core) when they divide it;
+  over the CPU devices (`--devices`, default one per core) when they divide it, each device stepping
+  its own environments (kinetix.devices.per_device);
 - Python loop (the interactive path): one env step per call at batch 1, blocking on each result, with
   state and params packed in one buffer each (`env.step_compact`), and the plain pytree `env.step`;
 - cold compile seconds of one jitted `env.step` and one jitted `env.reset` at batch 1;
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import sys
 import time
@@ -64,43 +66,49 @@ def _make_env(level_file):
 def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = True) -> dict:
     """Agent steps per second of `batch` environments stepped `steps` times in one jitted scan."""
     import jax
+    import jax.numpy as jnp
 
     from kinetix.actions import sample_random_action
-    from kinetix.devices import batch_devices, constrain_batch
+    from kinetix.devices import batch_devices, per_device, shard_batch
 
     env, params = _make_env(level_file)
     action_type = env.config.action
 
-    def rollout(key, params):
-        keys = constrain_batch(jax.random.split(key, batch), batch)
+    # Every environment carries its own key, and each device steps its own environments
+    # (kinetix.devices.per_device): nothing is exchanged between devices inside the scan.
+    @functools.partial(per_device, batch=batch, in_axes=(0, None))
+    def rollout(keys, params):
         _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
-        states = constrain_batch(states, batch)
+
+        def one_env_step(key, state, params):
+            key, act_key, step_key = jax.random.split(key, 3)
+            action = sample_random_action(act_key, action_type)
+            obs, state, reward, terminated, truncated, info = env.step(step_key, state, action, params)
+            return key, state, reward, terminated | truncated
 
         def one_step(carry, _):
-            states, key = carry
-            key, act_key, step_key = jax.random.split(key, 3)
-            actions = jax.vmap(lambda k: sample_random_action(k, action_type))(jax.random.split(act_key, batch))
-            obs, states, reward, terminated, truncated, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(step_key, batch), states, actions, params)
-            states = constrain_batch(states, batch)
-            return (states, key), (reward.sum(), (terminated | truncated).sum())
+            keys, states, rewards, ends = carry
+            keys, states, reward, ended = jax.vmap(one_env_step, in_axes=(0, 0, None))(keys, states, params)
+            return (keys, states, rewards + reward, ends + ended), None
 
-        (states, _), (rewards, ends) = jax.lax.scan(one_step, (states, key), None, length=steps)
-        return states, rewards.sum(), ends.sum()
+        zeros = jnp.zeros(keys.shape[0], jnp.float32)
+        (_, states, rewards, ends), _ = jax.lax.scan(one_step, (keys, states, zeros, zeros.astype(jnp.int32)),
+                                                     None, length=steps)
+        return states, rewards, ends  # per environment
 
-    key = jax.random.PRNGKey(SEED)
+    keys = shard_batch(jax.random.split(jax.random.PRNGKey(SEED), batch), batch)
     if cold:
         jax.clear_caches()
     start = time.perf_counter()
-    compiled = jax.jit(rollout).lower(key, params).compile()
+    compiled = jax.jit(rollout).lower(keys, params).compile()
     compile_s = time.perf_counter() - start
 
     start = time.perf_counter()
-    result = jax.block_until_ready(compiled(key, params))
+    result = jax.block_until_ready(compiled(keys, params))
     seconds = time.perf_counter() - start
     if seconds < REPEAT_BELOW_S:  # a short run is skewed by first-run allocations: time a second one
         start = time.perf_counter()
-        result = jax.block_until_ready(compiled(key, params))
+        result = jax.block_until_ready(compiled(keys, params))
         seconds = time.perf_counter() - start
     states, _, episodes_ended = result
     return {
@@ -113,7 +121,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
         "seconds": seconds,
         "compile_s": compile_s,
         "devices": batch_devices(batch),
-        "episodes_ended": int(episodes_ended),
+        "episodes_ended": int(episodes_ended.sum()),
         "finite": _finite(states),
     }
 

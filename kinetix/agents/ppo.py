@@ -199,6 +199,10 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(schedule, eps=1e-5))
     observe = jax.vmap(env.observe)
     transition = jax.vmap(env.transition, in_axes=(0, 0, None))
+    if shard is not None:  # each device steps its own environments: no all-reduce inside the physics
+        from kinetix.devices import per_device
+
+        transition = per_device(transition, E, in_axes=(0, 0, None))
     place = shard or (lambda tree: tree)
 
     def init(key: jax.Array) -> Runner:

@@ -111,6 +111,9 @@ class StepOutput(NamedTuple):
     info: dict
 
 
+_NOT_A_STEP_OUTPUT = "previous must be what reset_compact or step_compact of this env returned"
+
+
 def _select(pred: jax.Array, on_true, on_false):
     """Tree-wise `pred ? on_true : on_false` for a scalar predicate (a per-element select under vmap)."""
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
@@ -213,6 +216,8 @@ class KinetixEnv:
         which gives a StepOutput of numpy arrays. Equal to `step`, bitwise.
         """
         before = unpack(previous)
+        if not isinstance(before, StepOutput):
+            raise ValueError(_NOT_A_STEP_OUTPUT)
         params = unpack(params)
         next_state, reward, terminated, truncated, info = self.transition(before.state, action, params)
         # The state works on packed words: its leaves are contiguous in the packed StepOutput, a step
@@ -220,14 +225,17 @@ class KinetixEnv:
         # select over the words instead of one per leaf. Selecting bits equals selecting values.
         start = previous.layout.offsets[len(jax.tree.leaves(before.obs))]
         state_layout = layout_of(before.state)
-        words = jax.lax.dynamic_slice_in_dim(previous.buffer, start, state_layout.size)
+        words = previous.buffer[start:start + state_layout.size]
         stepped = update(Compact(words, state_layout), before.state, next_state).buffer
         fresh = pack(self.initial_state(key, params)).buffer
         words = jnp.where(terminated | truncated, fresh, stepped)
         state = unpack(Compact(words, state_layout))
-        head = pack(self.observe(state)).buffer
-        tail = pack((reward, terminated, truncated, info)).buffer
-        return Compact(jnp.concatenate([head, words, tail]), previous.layout)
+        obs = self.observe(state)
+        layout = layout_of(StepOutput(obs, state, reward, terminated, truncated, info))
+        if layout != previous.layout:
+            raise ValueError(_NOT_A_STEP_OUTPUT)
+        head, tail = pack(obs).buffer, pack((reward, terminated, truncated, info)).buffer
+        return Compact(jnp.concatenate([head, words, tail]), layout)
 
     def transition(self, state: EnvState, action, params: EnvParams | None = None):
         """(next_state, reward, terminated, truncated, info): one agent step, no observation, no reset."""

@@ -392,3 +392,12 @@ def test_packed_step_equals_step_bitwise_through_an_auto_reset(env, step, reset)
         state = out[1]
         ended += bool(out[3] | out[4])
     assert ended >= 1  # an episode ended, so the auto-reset path was compared too
+
+
+def test_packed_step_rejects_a_buffer_that_is_not_a_packed_step_output(env):
+    from jax2d.compact import pack
+
+    params = jax.jit(pack)(EnvParams())
+    obs, state = env.reset(KEY, EnvParams())
+    with pytest.raises(ValueError, match="reset_compact or step_compact"):
+        env.step_compact(KEY, pack((obs, state)), NOOP, params)  # (obs, state) alone: no reward, flags, info

@@ -69,14 +69,6 @@ def shard_batch(tree, batch: int, axis: int = 0):
     return tree if sharding is None else jax.device_put(tree, sharding)
 
 
-def constrain_batch(tree, batch: int, axis: int = 0):
-    """Inside jit: ask that every leaf of `tree` be split over the devices along `axis`."""
-    import jax
-
-    sharding = batch_sharding(batch, axis)
-    return tree if sharding is None else jax.lax.with_sharding_constraint(tree, sharding)
-
-
 def per_device(fn, batch: int, in_axes: tuple, out_axis: int = 0):
     """`fn` run on each device's part of the batch (shard_map), with nothing exchanged between devices.
 

@@ -25,7 +25,7 @@ SCRIPT = textwrap.dedent("""
     enable_compilation_cache()
     from jax2d import SimParams, step
     from kinetix.bench import scenes
-    from kinetix.devices import batch_devices, shard_batch
+    from kinetix.devices import batch_devices, per_device, shard_batch
 
     batch, steps = 6, 30
     states = scenes.build_batch("s", batch, seed=3)
@@ -34,12 +34,13 @@ SCRIPT = textwrap.dedent("""
     thrust = jnp.asarray(rng.uniform(0, 1, (steps, batch, states.num_thrusters)), jnp.float32)
     vstep = jax.vmap(lambda s, m, t: step(s, SimParams(), m, t, config=scenes.CONFIG))
 
-    @jax.jit
     def rollout(states, motor, thrust):
         return jax.lax.scan(lambda s, a: (vstep(s, *a), None), states, (motor, thrust))[0]
 
-    single = rollout(states, motor, thrust)
-    split = rollout(shard_batch(states, batch), *shard_batch((motor, thrust), batch, axis=1))
+    single = jax.jit(rollout)(states, motor, thrust)
+    # As the benches and PPO split a batch: each device steps its own scenes (per_device).
+    split = jax.jit(per_device(rollout, batch, in_axes=(0, 1, 1)))(
+        shard_batch(states, batch), *shard_batch((motor, thrust), batch, axis=1))
     print(json.dumps({
         "device_count": jax.device_count(),
         "devices_for_6": batch_devices(6), "devices_for_5": batch_devices(5),

@@ -76,8 +76,8 @@ def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_step
     parser.add_argument("--devices", type=positive_int, default=None,
                         help="CPU devices to split each batch over (default: one per core; 1 = a single "
                              "computation on one core). A batch they do not divide runs on one device. The "
-                             "Python loop always runs in a one-device process, as an interactive session does.")
-    # Internal: measure only the Python loop (the one-device child process of the benchmark).
+                             "Python loop always runs in a child process with one device on one core.")
+    # Internal: measure only the Python loop (the one-device, one-core child process of the benchmark).
     parser.add_argument("--loop-only", action="store_true", help=argparse.SUPPRESS)
 
 
@@ -325,9 +325,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"kinetix {' '.join(command.path)} is not available yet: {error}", file=sys.stderr)
         return 2
     if getattr(args, "devices", False) is not False:  # before JAX starts: XLA reads the flag once
-        from kinetix.devices import request_cpu_devices
+        from kinetix.devices import confine_to_one_core, request_cpu_devices
 
         request_cpu_devices(args.devices)
+        if getattr(args, "loop_only", False):  # the benches' interactive-loop child (interactive_loops)
+            confine_to_one_core()
     if command.uses_jax:
         from kinetix.jaxcache import enable_compilation_cache
 

@@ -10,6 +10,7 @@ must run before the first computation; the rest works with whatever devices exis
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 
 DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count"
@@ -32,6 +33,37 @@ def request_cpu_devices(count: int | None = None) -> None:
         warnings.warn(f"JAX is already running; {DEVICE_COUNT_FLAG}={count} is ignored", stacklevel=2)
         return
     os.environ["XLA_FLAGS"] = f"{flags} {DEVICE_COUNT_FLAG}={count}".strip()
+
+
+def usable_cores() -> int:
+    """How many CPU cores this process may run on (its affinity, where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def confine_to_one_core(core: int | None = None) -> bool:
+    """Run this process (and every thread it starts later) on one CPU core; call it before JAX starts.
+
+    For one scene stepped from a Python loop this is the fastest set-up measured on this 2-core machine:
+    XLA sizes its thread pool from the cores it may use, so it gets one thread and runs the step's
+    hundreds of tiny kernels without handing them across cores. A jitted l-size step called in a loop
+    took 0.41-0.48 ms confined against 0.59-0.68 ms free (env.step at l: 0.89-0.94 against 1.13-1.33 ms).
+    Batches want every core instead (`request_cpu_devices`). Returns False where the OS has no CPU affinity.
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        return False
+    allowed = sorted(os.sched_getaffinity(0))
+    core = allowed[0] if core is None else core
+    if core not in allowed:
+        raise ValueError(f"core {core} is not available to this process (allowed: {allowed})")
+    # Threads started before this keep their cores, and importing jaxlib starts some: set it first.
+    os.sched_setaffinity(0, {core})
+    if "jax" in sys.modules:
+        from jax._src import xla_bridge
+
+        if xla_bridge.backends_are_initialized():
+            warnings.warn("JAX is already running: its threads keep their cores and its pool its size; confine "
+                          "before the first computation", stacklevel=2)
+    return True
 
 
 def batch_devices(batch: int) -> int:

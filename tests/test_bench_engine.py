@@ -89,11 +89,11 @@ def test_level_option_fails_clearly_without_the_level_loader(capsys, monkeypatch
     assert engine.NO_LEVEL_LOADER in capsys.readouterr().err
 
 
-def test_python_loop_runs_in_a_one_device_child_when_batches_use_two(monkeypatch):
-    """With the batches split over 2 devices, the loop is measured in a child process with 1 (as the server runs)."""
+def test_python_loop_runs_in_a_one_device_one_core_child_when_batches_use_two(monkeypatch):
+    """With the batches split over 2 devices, the loop is measured in a child process with 1 device on 1 core."""
     from kinetix.devices import DEVICE_COUNT_FLAG
 
     monkeypatch.setenv("XLA_FLAGS", f"{DEVICE_COUNT_FLAG}=2")  # the child must not inherit this
-    (loop,) = engine.one_device_loops("engine", ["--sizes", "s"])
+    (loop,) = engine.interactive_loops("engine", ["--sizes", "s"])
     assert (loop["what"], loop["size"], loop["mode"]) == ("engine", "s", "python_loop")
-    assert loop["devices"] == 1 and loop["latency_ms"] > 0 and loop["finite"] is True
+    assert loop["devices"] == 1 and loop["cores"] == 1 and loop["latency_ms"] > 0 and loop["finite"] is True

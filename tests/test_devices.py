@@ -73,3 +73,37 @@ def test_batch_split_over_two_cpu_devices_equals_one_device():
     # contacts (measured: 1.4e-4 rad/s on angular velocities up to 5.4 rad/s), not bitwise.
     assert result["close"], result["max_difference"]
     assert result["max_difference"] <= 1e-3
+
+
+CONFINE_SCRIPT = textwrap.dedent("""
+    import json, os
+    from kinetix.devices import confine_to_one_core, usable_cores
+    confined = confine_to_one_core()  # before JAX starts, as the benches' loop child does
+    import jax
+    import jax.numpy as jnp
+    total = float(jax.jit(lambda x: (x * 2).sum())(jnp.arange(1000.0)))  # JAX's backend and threads running
+    threads = os.listdir("/proc/self/task")
+    print(json.dumps({"confined": confined, "cores": usable_cores(), "total": total, "threads": len(threads),
+                      "thread_cores": sorted({len(os.sched_getaffinity(int(t))) for t in threads})}))
+""")
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="this OS has no CPU affinity")
+def test_confine_to_one_core_holds_for_every_thread_jax_starts():
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
+    proc = subprocess.run([sys.executable, "-c", CONFINE_SCRIPT], capture_output=True, text=True, env=env, cwd=ROOT,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["confined"] is True and result["cores"] == 1
+    assert result["total"] == 999000.0
+    assert result["threads"] > 1  # XLA started threads of its own ...
+    assert result["thread_cores"] == [1]  # ... and every one of them runs on the one core
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="this OS has no CPU affinity")
+def test_confine_to_one_core_rejects_a_core_the_process_may_not_use():
+    from kinetix.devices import confine_to_one_core
+
+    with pytest.raises(ValueError, match="core 100000 is not available"):
+        confine_to_one_core(100000)

@@ -179,6 +179,7 @@ def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool 
 
     from jax2d import step, step_compact
     from jax2d.compact import pack, unpack_host
+    from kinetix.devices import usable_cores
 
     scene = jax.tree.map(lambda x: x[0], workload.make_batch(1))
     rng = np.random.default_rng(SEED)
@@ -217,16 +218,19 @@ def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool 
         "pytree_latency_ms": pytree_ms,
         "compile_s": compile_s,
         "devices": jax.device_count(),
+        "cores": usable_cores(),
         "finite": _all_finite(unpack_host(state)),
     }
 
 
-def one_device_loops(command: str, selection: list[str]) -> list[dict]:
-    """The Python-loop results of `kinetix bench <command> <selection>`, measured in a child process with one device.
+def interactive_loops(command: str, selection: list[str]) -> list[dict]:
+    """The Python-loop results of `kinetix bench <command> <selection>`, measured in a child process that has
+    one device and runs on one core (`kinetix.devices.confine_to_one_core`): the set-up for stepping one scene
+    from Python.
 
-    With two XLA CPU devices in the process, a single-scene call measured 20-25 % slower on this 2-core
-    machine than with one, and an interactive process (the server, a person's loop) has one. So when the
-    batches run on several devices, the loops run in a process like theirs.
+    Two XLA CPU devices in the process made a single-scene call 20-25 % slower, and XLA's thread pool
+    spreading one scene's tiny kernels over both cores cost another 20-30 % (l: 0.59-0.68 ms against
+    0.41-0.48 ms per engine step). The batches, measured in this process, keep both cores.
     """
     from kinetix.devices import DEVICE_COUNT_FLAG
 
@@ -329,20 +333,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"jax2d engine, {args.steps} steps per rollout; compile times are cold "
               "(persistent compilation cache disabled, in-memory caches cleared)")
         print("scan: B scenes under vmap in one jitted lax.scan, steps/s = B * steps / s, ms/call = one batched step")
-        print("python loop: one scene, one jitted step per call, blocking each call; compile s = first call;")
+        print("python loop: one scene, one jitted step per call, blocking each call, in a child process on one core;")
+        print("  compile s = first call;")
         print("  state and params packed in one buffer each (jax2d.step_compact); the plain pytree step in brackets")
         print(_HEADER, flush=True)
 
         def report(result: dict) -> None:
             print(table_row(result), flush=True)
 
-    import jax
 
     loop_only = getattr(args, "loop_only", False)
-    split = not loop_only and jax.device_count() > 1  # then the loops run in a one-device child (one_device_loops)
-    results = benchmark(workloads, [] if loop_only else args.batches, args.steps, report=report, loops=not split)
-    if split:
-        for result in one_device_loops("engine", ["--level", args.level] if args.level
+    # The loops run in a one-device, one-core child (interactive_loops), whatever this process has.
+    results = benchmark(workloads, [] if loop_only else args.batches, args.steps, report=report, loops=loop_only)
+    if not loop_only:
+        for result in interactive_loops("engine", ["--level", args.level] if args.level
                                        else ["--sizes", ",".join(args.sizes)]):
             results.append(result)
             report(result)

@@ -32,7 +32,7 @@ from kinetix.bench.engine import (
     REPEAT_BELOW_S,
     SEED,
     cold_compiles,
-    one_device_loops,
+    interactive_loops,
     peak_rss_mb,
 )
 
@@ -138,12 +138,14 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
 
     from jax2d.compact import pack, unpack_host
     from kinetix.actions import sample_random_action
+    from kinetix.devices import usable_cores
 
     env, params = _make_env(level_file)
     total = LOOP_WARMUP + calls
     actions = np.asarray(jax.vmap(lambda k: sample_random_action(k, env.config.action))(
         jax.random.split(jax.random.PRNGKey(SEED), total)))
-    keys = jax.random.split(jax.random.PRNGKey(SEED + 1), total)
+    # Numpy rows, like the actions: indexing a JAX array would add a dispatch of its own to every call.
+    keys = np.asarray(jax.random.split(jax.random.PRNGKey(SEED + 1), total))
 
     if cold:
         jax.clear_caches()
@@ -191,6 +193,7 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
         "reset_compile_s": reset_compile_s,
         "compact_compile_s": compact_compile_s,
         "devices": jax.device_count(),
+        "cores": usable_cores(),
         "finite": finite and _finite(unpack_host(packed).state),
     }
 
@@ -326,14 +329,13 @@ def run(args: argparse.Namespace) -> int:
         def report(result: dict) -> None:
             print(table_row(result), flush=True)
 
-    import jax
 
     loop_only = getattr(args, "loop_only", False)
-    split = not loop_only and jax.device_count() > 1  # then the loops run in a one-device child (one_device_loops)
-    results = benchmark(level_files, [] if loop_only else args.batches, args.steps, report=report, loops=not split,
+    # The loops run in a one-device, one-core child (interactive_loops), whatever this process has.
+    results = benchmark(level_files, [] if loop_only else args.batches, args.steps, report=report, loops=loop_only,
                         pixel_resolutions=() if loop_only else PIXEL_RESOLUTIONS)
-    if split:
-        for result in one_device_loops("env", ["--level", args.level] if args.level
+    if not loop_only:
+        for result in interactive_loops("env", ["--level", args.level] if args.level
                                        else ["--sizes", ",".join(args.sizes)]):
             results.append(result)
             report(result)

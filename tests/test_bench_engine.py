@@ -97,3 +97,28 @@ def test_python_loop_runs_in_a_one_device_one_core_child_when_batches_use_two(mo
     (loop,) = engine.interactive_loops("engine", ["--sizes", "s"])
     assert (loop["what"], loop["size"], loop["mode"]) == ("engine", "s", "python_loop")
     assert loop["devices"] == 1 and loop["cores"] == 1 and loop["latency_ms"] > 0 and loop["finite"] is True
+
+
+def test_loop_latency_comes_from_the_child_and_compile_time_from_this_process(monkeypatch):
+    """run_with_interactive_loops: the one-core child's latencies, this process's compile times, rows reported once."""
+    here = {"what": "engine", "size": "l", "batch": 1, "mode": "python_loop", "latency_ms": 0.9,
+            "pytree_latency_ms": 1.2, "compile_s": 4.5, "cores": 2, "devices": 2, "finite": True}
+    batch = {"what": "engine", "size": "l", "batch": 16, "mode": "scan", "steps_per_s": 1000.0}
+    child = {**here, "latency_ms": 0.4, "pytree_latency_ms": 0.6, "compile_s": 8.4, "cores": 1, "devices": 1,
+             "finite": False}
+    monkeypatch.setattr(engine, "interactive_loops", lambda command, selection: [child])
+
+    def measure(report, loops):
+        assert loops is True
+        for result in (batch, here):
+            report(result)
+        return [batch, here]
+
+    reported = []
+    merged = engine.run_with_interactive_loops(measure, "engine", ["--sizes", "l"], reported.append)
+    loop = merged[1]
+    assert merged[0] is batch
+    assert (loop["latency_ms"], loop["pytree_latency_ms"], loop["cores"], loop["devices"]) == (0.4, 0.6, 1, 1)
+    assert (loop["compile_s"], loop["compile_cores"]) == (4.5, 2)
+    assert loop["finite"] is False  # either measurement going non-finite fails the run
+    assert reported == [batch, loop]  # the loop row is printed once, merged

@@ -32,8 +32,8 @@ from kinetix.bench.engine import (
     REPEAT_BELOW_S,
     SEED,
     cold_compiles,
-    interactive_loops,
     peak_rss_mb,
+    run_with_interactive_loops,
 )
 
 REPO_DIR = Path(__file__).resolve().parents[2]
@@ -331,12 +331,10 @@ def run(args: argparse.Namespace) -> int:
 
 
     loop_only = getattr(args, "loop_only", False)
-    # The loops run in a one-device, one-core child (interactive_loops), whatever this process has.
-    results = benchmark(level_files, [] if loop_only else args.batches, args.steps, report=report, loops=loop_only,
-                        pixel_resolutions=() if loop_only else PIXEL_RESOLUTIONS)
-    if not loop_only:
-        for result in interactive_loops("env", ["--level", args.level] if args.level
-                                       else ["--sizes", ",".join(args.sizes)]):
-            results.append(result)
-            report(result)
+    if loop_only:
+        results = benchmark(level_files, [], args.steps, report=report, pixel_resolutions=())
+    else:  # the loops' latencies come from a one-device, one-core child (interactive_loops)
+        results = run_with_interactive_loops(
+            functools.partial(benchmark, level_files, args.batches, args.steps), "env",
+            ["--level", args.level] if args.level else ["--sizes", ",".join(args.sizes)], report)
     return 0 if all(result.get("finite", True) for result in results) else 1

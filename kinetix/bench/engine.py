@@ -358,7 +358,7 @@ def run(args: argparse.Namespace) -> int:
               "(persistent compilation cache disabled, in-memory caches cleared)")
         print("scan: B scenes under vmap in one jitted lax.scan, steps/s = B * steps / s, ms/call = one batched step")
         print("python loop: one scene, one jitted step per call, blocking each call, in a child process on one core;")
-        print("  compile s = first call;")
+        print("  compile s = its first call, measured in this process (a process that compiles keeps every core);")
         print("  state and params packed in one buffer each (jax2d.step_compact); the plain pytree step in brackets")
         print(_HEADER, flush=True)
 

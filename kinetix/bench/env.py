@@ -324,11 +324,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"kinetix env, {args.steps} agent steps per rollout (symbolic-entity observations, random "
               "multi-discrete actions, auto-reset); compile times are cold")
+        print("python loop: one env, env.step_compact per call, in a child process on one core; "
+              "its compile times are this process's")
         print(_HEADER, flush=True)
 
         def report(result: dict) -> None:
             print(table_row(result), flush=True)
-
 
     loop_only = getattr(args, "loop_only", False)
     if loop_only:

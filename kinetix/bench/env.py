@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 from kinetix.bench.engine import (
+    COMPILE_LOOP_CALLS,
     LOOP_CALLS,
     LOOP_WARMUP,
     REPEAT_BELOW_S,
@@ -336,6 +337,6 @@ def run(args: argparse.Namespace) -> int:
         results = benchmark(level_files, [], args.steps, report=report, pixel_resolutions=())
     else:  # the loops' latencies come from a one-device, one-core child (interactive_loops)
         results = run_with_interactive_loops(
-            functools.partial(benchmark, level_files, args.batches, args.steps), "env",
+            functools.partial(benchmark, level_files, args.batches, args.steps, loop_calls=COMPILE_LOOP_CALLS), "env",
             ["--level", args.level] if args.level else ["--sizes", ",".join(args.sizes)], report)
     return 0 if all(result.get("finite", True) for result in results) else 1

@@ -253,8 +253,9 @@ def run_with_interactive_loops(measure: Callable[..., list[dict]], command: str,
                                report: Callable[[dict], None]) -> list[dict]:
     """`measure(report=..., loops=True)`'s results, with each Python loop's latencies from `interactive_loops`.
 
-    Compile times stay this process's: confined to one core, XLA compiled a step ~1.6x slower (l: 8.4 s
-    against ~5 s), and a process that compiles, like the server, keeps every core.
+    Compile times stay this process's: confined to one core, XLA compiled 1.2-1.9x slower (one step 8.4-9.9 s
+    against 5.1-6.8 s for a batch-1 scan in the same runs), and a process that compiles, like the server,
+    keeps every core.
     """
     results = measure(report=lambda result: None if result.get("mode") == "python_loop" else report(result),
                       loops=True)

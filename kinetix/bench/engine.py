@@ -5,8 +5,9 @@ Two ways of running the step are measured, because the project uses both:
   steps_per_s = B * steps / seconds of one run, excluding compilation (see REPEAT_BELOW_S). The batch is
   split over the CPU devices (`--devices`, default one per core; see kinetix.devices) when they divide it,
   each device stepping its own scenes (kinetix.devices.per_device).
-- Python loop (interactive server): one scene, one jitted step per call, blocking on each
-  result as the server does every frame; latency_ms is the mean per call.
+- Python loop (interactive): one scene, one jitted step per call, blocking on each result as the server
+  does every frame; latency_ms is the mean per call, measured in a child process with one device on one
+  core (interactive_loops), and the loop's compile_s in this process (run_with_interactive_loops).
 
 Compile times are cold: the persistent compilation cache is switched off for the whole benchmark
 and JAX's in-memory caches are cleared before each measured compilation. A scan's compile_s is
@@ -366,7 +367,6 @@ def run(args: argparse.Namespace) -> int:
 
         def report(result: dict) -> None:
             print(table_row(result), flush=True)
-
 
     loop_only = getattr(args, "loop_only", False)
     if loop_only:

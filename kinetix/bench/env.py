@@ -7,7 +7,8 @@ What is measured, per level (one per size class by default):
   over the CPU devices (`--devices`, default one per core) when they divide it, each device stepping
   its own environments (kinetix.devices.per_device);
 - Python loop (the interactive path): one env step per call at batch 1, blocking on each result, with
-  state and params packed in one buffer each (`env.step_compact`), and the plain pytree `env.step`;
+  state and params packed in one buffer each (`env.step_compact`), and the plain pytree `env.step`,
+  timed in a child process with one device on one core (kinetix.bench.engine.interactive_loops);
 - cold compile seconds of one jitted `env.step` and one jitted `env.reset` at batch 1;
 - the JAX pixel renderer: ms per frame at batch 1 from a Python loop and per frame inside a vmapped batch,
   at the pixel-observation resolution and at 256 px, with its cold compile seconds.

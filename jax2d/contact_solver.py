@@ -50,10 +50,11 @@ class ContactImpulses(NamedTuple):
 
 def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_mass, inv_inertia,
             friction, restitution) -> ContactConstraints:
-    """Build constraints from the step's manifolds (one row per slot)."""
+    """Build constraints from the step's manifolds (one row per slot), on batch-last arrays:
+    per body (M, *batch), manifold fields with the batch after their own axes."""
     a, b = layout.slot_a, layout.slot_b
     nx, ny = manifold.normal[:, 0], manifold.normal[:, 1]
-    px, py = manifold.point[..., 0], manifold.point[..., 1]
+    px, py = manifold.point[:, :, 0], manifold.point[:, :, 1]
     rax, ray = px - pose.x[a][:, None], py - pose.y[a][:, None]
     rbx, rby = px - pose.x[b][:, None], py - pose.y[b][:, None]
     ma, ia, mb, ib = inv_mass[a], inv_inertia[a], inv_mass[b], inv_inertia[b]

@@ -4,8 +4,8 @@ Soft constraints as in Box2D v3's soft step. Joints connect bodies chosen by the
 level (data, not constants), so bodies are gathered with one-hot rows (J, M)
 built once per step; a masked sum is cheaper under `vmap` than a dynamic gather.
 Joints are solved one after another (Gauss-Seidel) in a loop, which keeps chains
-stiff. `prepare` runs per scene; the rest runs inside the substeps on batch-last
-arrays (step.py): per-body (M, *batch), per-joint (J, *batch).
+stiff. Everything here runs on batch-last arrays (step.py): per body (M, *batch),
+per joint (J, *batch), one-hot rows (J, M, *batch).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jax2d.math2d import Pose, Softness, Vel, cross, pick, pick_rows, rotate, safe_inverse, stored
+from jax2d.math2d import Pose, Softness, Vel, cross, one_hot_rows, pick, pick_rows, rotate, safe_inverse, stored
 from jax2d.state import J_ANGULAR, J_LINEAR_X, J_LINEAR_Y, J_LOWER, J_MOTOR, J_UPPER, Joints
 
 
@@ -50,17 +50,18 @@ class JointFrame(NamedTuple):
 
 
 def prepare(joints: Joints, num_padded: int, inv_mass, inv_inertia, motor_actions, h, params) -> JointConstraints:
+    """Constraints for one step, on batch-last arrays like the rest (step._prepare)."""
     active = joints.active.astype(jnp.float32)
-    sel_a = jax.nn.one_hot(joints.a, num_padded, dtype=jnp.float32) * active[:, None]
-    sel_b = jax.nn.one_hot(joints.b, num_padded, dtype=jnp.float32) * active[:, None]
-    ia, ib = sel_a @ inv_inertia, sel_b @ inv_inertia
+    sel_a = one_hot_rows(joints.a, num_padded) * active[:, None]
+    sel_b = one_hot_rows(joints.b, num_padded) * active[:, None]
+    ia, ib = pick_rows(sel_a, inv_inertia), pick_rows(sel_b, inv_inertia)
     axial = safe_inverse(ia + ib)
     revolute = active * (~joints.fixed)
     motor = revolute * joints.motor_on
     action = jnp.clip(motor_actions, -1.0, 1.0)
     return JointConstraints(
         sel_a=sel_a, sel_b=sel_b,
-        ma=sel_a @ inv_mass, ia=ia, mb=sel_b @ inv_mass, ib=ib,
+        ma=pick_rows(sel_a, inv_mass), ia=ia, mb=pick_rows(sel_b, inv_mass), ib=ib,
         axial_mass=axial,
         revolute=revolute, weld=active * joints.fixed, motor=motor,
         limit=revolute * joints.limit_on,

@@ -53,6 +53,15 @@ def pick_rows(sel, x):
     return jnp.sum(sel * x[None], axis=1)
 
 
+def one_hot_rows(index, m: int):
+    """index (R, *batch) int -> (R, m, *batch) float32 one-hot rows (all zero for an index outside [0, m)).
+
+    jax.nn.one_hot puts the classes last; the solver wants them before trailing batch axes.
+    """
+    classes = jnp.arange(m).reshape((1, m) + (1,) * (index.ndim - 1))
+    return (index[:, None] == classes).astype(jnp.float32)
+
+
 def stored(token, fn, *args):
     """fn(*args), computed once and kept in memory for every consumer.
 

@@ -13,8 +13,8 @@
 
 Inside the step every body quantity is its own array over M padded bodies
 (math2d.Vel / Pose); M is the body count rounded up to even, the extra body a
-static dummy that padding contact slots point at. The narrow phase, prepare and
-store run per scene; the substeps and restitution run on a batch of scenes with
+static dummy that padding contact slots point at. The narrow phase and store run
+per scene; prepare, the substeps and restitution run on a batch of scenes with
 the batch as the last axis, (M, B) per body (see step_batch).
 """
 
@@ -33,7 +33,7 @@ from jax.custom_batching import custom_vmap
 from jax2d import contact_solver, joint_solver
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.compact import Compact, unpack, update
-from jax2d.math2d import Pose, Softness, Vel, pick_rows, rotate, soft
+from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
 from jax2d.state import COLLIDE_ALL, Bodies, Contacts, Joints, SimParams, SimState, SolverConfig, Thrusters
 
@@ -69,7 +69,7 @@ def step_batch(states: SimState, params: SimParams, motor_actions: jax.Array, th
                config: SolverConfig = DEFAULT_CONFIG) -> SimState:
     """Advance B scenes stacked on a leading axis. params: shared (scalar leaves) or per scene ((B,) leaves).
 
-    The narrow phase, preparation and store run per scene (vmap). The substep loop runs on
+    The narrow phase and store run per scene (vmap). Preparation and the substep loop run on
     batch-last arrays (per body (M, B), per slot (C, F, K, B)): under a plain vmap the batch
     would be the major axis and each colour's K slots the minor one, and XLA's CPU loops then
     move a handful of floats per row; batch-last they stream over B (measured 2x on the sweeps).
@@ -96,15 +96,22 @@ def step_batch(states: SimState, params: SimParams, motor_actions: jax.Array, th
 
 def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_actions, config: SolverConfig):
     """step_batch on one part of the batch (params already per scene)."""
-    prep = jax.vmap(lambda s, p, m, t: _prepare(s, p, m, t, config))(states, params, motor_actions, thruster_actions)
     layout = contact_layout(states.num_polygons, states.num_circles, config.num_static)
-    loop = jax.tree.map(lambda x: jnp.moveaxis(x, 0, -1), prep.loop)
+    M = layout.num_padded
+    # The narrow phase and the joint closure run per scene; from there on every array is batch-last.
+    manifold, jointed = jax.vmap(lambda b, j, spec: (
+        narrow_phase(layout, b, spec), joint_connected(j, M)[layout.slot_a, layout.slot_b]))(
+        states.bodies, states.joints, params.speculative_distance)
+    last = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, 0, -1))
+    loop, valid = _prepare(layout, last(states), params, last(motor_actions), last(thruster_actions),
+                           last(manifold), last(jointed), config)
     colours = contact_solver.schedule(loop.const)
     pose, vel, cimp, jimp = _substeps(layout, loop, colours, config)
     vel, cimp = contact_solver.restitution(layout, loop.const, cimp, vel, loop.restitution_threshold, colours)
-    pose, vel, cimp, jimp = jax.tree.map(lambda x: jnp.moveaxis(x, -1, 0), (pose, vel, cimp, jimp))
+    first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
+    pose, vel, cimp, jimp, valid, dyn = first((pose, vel, cimp, jimp, valid, loop.dyn))
     return jax.vmap(_store)(states, params, pose, vel, jax.vmap(contact_solver.unpack_impulses)(cimp), jimp,
-                            prep.manifold, prep.valid, prep.loop.dyn)
+                            manifold, valid, dyn)
 
 
 @functools.cache
@@ -154,15 +161,16 @@ class LoopData(NamedTuple):
     restitution_threshold: jax.Array
 
 
-class Prepared(NamedTuple):
-    loop: LoopData
-    manifold: Manifold
-    valid: jax.Array  # (S, 2)
+def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_actions, thruster_actions,
+             manifold: Manifold, jointed, config: SolverConfig) -> tuple[LoopData, jax.Array]:
+    """Constraint preparation from the pose at the start of the step, on batch-last arrays.
 
-
-def _prepare(state: SimState, params: SimParams, motor_actions, thruster_actions, config: SolverConfig) -> Prepared:
-    """Narrow phase and constraint preparation for one scene, from the pose at the start of the step."""
-    layout = contact_layout(state.num_polygons, state.num_circles, config.num_static)
+    Every leaf has the batch as its last axis: per body (N, *batch), per slot (S, *batch),
+    params (*batch). Run batch-major under vmap, this stage gathered a few floats per row and
+    then transposed every constraint array for the substeps; batch-last, each gather by a
+    constant slot index is one contiguous row. jointed: (S, *batch) slots whose bodies a chain
+    of joints connects. Returns the loop data and (S, 2, *batch) which points are valid.
+    """
     M = layout.num_padded
     b = state.bodies
     dynamic = b.active & (b.inv_mass > 0)
@@ -175,8 +183,7 @@ def _prepare(state: SimState, params: SimParams, motor_actions, thruster_actions
     h = params.dt / config.substeps
     inv_h = 1.0 / h
     jc = joint_solver.prepare(state.joints, M, inv_mass, inv_inertia, motor_actions, h, params)
-    manifold = narrow_phase(layout, b, params.speculative_distance)
-    enabled = pair_filter(layout, b, jc, M)
+    enabled = pair_filter(layout, b, jointed, M)
     valid = manifold.valid & enabled[:, None]
     cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
                                 _pad(b.friction, M), _pad(b.restitution, M))
@@ -196,7 +203,7 @@ def _prepare(state: SimState, params: SimParams, motor_actions, thruster_actions
         max_push_velocity=jnp.asarray(params.max_push_velocity, jnp.float32),
         restitution_threshold=jnp.asarray(params.restitution_threshold, jnp.float32),
     )
-    return Prepared(loop, manifold, valid)
+    return loop, valid
 
 
 def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedule, config: SolverConfig):
@@ -233,8 +240,8 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedu
 
 
 def _pad(x, m):
-    """Append static dummy rows so the body count is M."""
-    return jnp.pad(x, (0, m - x.shape[0]))
+    """Append static dummy rows (axis 0) so the body count is M."""
+    return jnp.pad(x, [(0, m - x.shape[0])] + [(0, 0)] * (x.ndim - 1))
 
 
 def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
@@ -271,20 +278,21 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
     return jax.tree.map(lambda x: x[layout.gather], rows)
 
 
-def pair_filter(layout: ContactLayout, b: Bodies, jc: joint_solver.JointConstraints, M: int):
-    """(S,) whether each slot's bodies may collide: active, not both static, modes agree, not jointed."""
+def pair_filter(layout: ContactLayout, b: Bodies, jointed, M: int):
+    """(S, *batch) whether each slot's bodies may collide: active, not both static, modes agree, not jointed."""
     a, c = layout.slot_a, layout.slot_b
     active = _pad(b.active, M)
     moving = _pad(b.active & (b.inv_mass > 0), M)
     mode = _pad(b.collision_mode, M)
     modes_agree = (mode[a] == COLLIDE_ALL) | (mode[c] == COLLIDE_ALL) | ((mode[a] > 0) & (mode[c] > 0))
-    return (layout.slot_kind != PADDING) & active[a] & active[c] & (moving[a] | moving[c]) & modes_agree \
-        & ~joint_connected(jc, M)[a, c]
+    real = (layout.slot_kind != PADDING).reshape((-1,) + (1,) * (active.ndim - 1))
+    return real & active[a] & active[c] & (moving[a] | moving[c]) & modes_agree & ~jointed
 
 
-def joint_connected(jc: joint_solver.JointConstraints, M: int):
-    """(M, M) bool: bodies linked through any chain of joints (transitive closure by squaring)."""
-    link = jc.sel_a.T @ jc.sel_b
+def joint_connected(joints: Joints, M: int):
+    """(M, M) bool for one scene: bodies linked through any chain of joints (transitive closure by squaring)."""
+    on = joints.active.astype(jnp.float32)[:, None]
+    link = (jax.nn.one_hot(joints.a, M) * on).T @ (jax.nn.one_hot(joints.b, M) * on)
     reach = (jnp.eye(M) + link + link.T) > 0
     for _ in range(max(1, math.ceil(math.log2(M)))):
         r = reach.astype(jnp.float32)
@@ -307,8 +315,8 @@ def _matched_impulses(old: Contacts, key, valid, warm_start: bool) -> contact_so
 
 
 def thruster_forces(t: Thrusters, actions, M: int, params: SimParams):
-    """Per-thruster selection rows and force magnitudes; directions follow the body each substep."""
-    sel = jax.nn.one_hot(t.body, M, dtype=jnp.float32) * t.active.astype(jnp.float32)[:, None]
+    """Per-thruster selection rows (T, M, *batch) and force magnitudes; directions follow the body each substep."""
+    sel = one_hot_rows(t.body, M) * t.active.astype(jnp.float32)[:, None]
     magnitude = t.power * params.base_thruster_power * jnp.clip(actions, 0.0, 1.0)
     return sel, magnitude, t
 

@@ -60,6 +60,7 @@ def test_tiny_benchmark_results_and_json_lines():
         assert (line["what"], line["size"], line["batch"], line["steps"]) == ("engine", "s", batch, 5)
         assert line["steps_per_s"] > 0 and line["compile_s"] > 0
         assert line["finite"] is True
+        assert line["runs"] == engine.SHORT_RUNS  # runs this short are repeated and the median reported
     (loop,) = loops
     assert {"what", "size", "batch", "mode", "latency_ms", "compile_s"} <= loop.keys()
     assert (loop["what"], loop["size"], loop["batch"], loop["mode"]) == ("engine", "s", 1, "python_loop")
@@ -68,6 +69,39 @@ def test_tiny_benchmark_results_and_json_lines():
     (last,) = summary
     assert last["what"] == "engine" and last["peak_rss_mb"] > 10
     assert "size" not in last
+
+
+def test_timed_runs_reports_the_median_of_short_runs_and_a_long_first_run_alone(monkeypatch):
+    """A short run is a warm-up followed by SHORT_RUNS timed runs, reported by their median;
+    a run of REPEAT_BELOW_S or more is timed once."""
+    durations = iter([0.0, 0.05, 0.01, 0.03, 0.02, 0.04])
+    calls = []
+
+    def run():
+        calls.append(1)
+        return len(calls)
+
+    clock = {"now": 0.0}
+
+    def perf_counter():  # each run advances the clock by its scripted duration when it ends
+        return clock["now"]
+
+    def timed(fn):
+        def wrapped():
+            result = fn()
+            clock["now"] += next(durations)
+            return result
+        return wrapped
+
+    monkeypatch.setattr(engine.time, "perf_counter", perf_counter)
+    seconds, result, runs = engine.timed_runs(timed(run))
+    # the median of 0.05, 0.01, 0.03, 0.02, 0.04 (after the 0.0 warm-up)
+    assert (seconds, result, runs) == (pytest.approx(0.03), 6, engine.SHORT_RUNS)
+
+    durations = iter([engine.REPEAT_BELOW_S + 1.0])
+    calls.clear()
+    seconds, result, runs = engine.timed_runs(timed(run))
+    assert (seconds, result, runs) == (pytest.approx(engine.REPEAT_BELOW_S + 1.0), 1, 1)
 
 
 def test_table_rows_name_size_batch_and_mode():

@@ -31,6 +31,7 @@ def test_tiny_benchmark_results_and_json_lines():
         assert (line["what"], line["size"], line["level"], line["batch"], line["steps"]) == (
             "env", "s", "unicycle", batch, 300)
         assert line["steps_per_s"] > 0 and line["compile_s"] > 0 and line["finite"] is True
+        assert line["runs"] >= 1
         # 300 steps exceed the 256-step time limit, so auto-reset ran in every environment at least once.
         assert line["episodes_ended"] >= batch
     assert (loop["mode"], loop["batch"], loop["calls"]) == ("python_loop", 1, 5)

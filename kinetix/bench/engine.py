@@ -2,7 +2,7 @@
 
 Two ways of running the step are measured, because the project uses both:
 - batched rollout (training): B scenes under vmap, `steps` steps inside one jitted lax.scan;
-  steps_per_s = B * steps / seconds of one run, excluding compilation (see REPEAT_BELOW_S). The batch is
+  steps_per_s = B * steps / seconds of one run, excluding compilation (see timed_runs). The batch is
   split over the CPU devices (`--devices`, default one per core; see kinetix.devices) when they divide it,
   each device stepping its own scenes (kinetix.devices.per_device).
 - Python loop (interactive): one scene, one jitted step per call, blocking on each result as the server
@@ -32,9 +32,11 @@ from dataclasses import dataclass
 from typing import Any
 
 LOOP_CALLS = 500  # timed calls of the single-scene step
-# A rollout is timed on its first run after compiling, and again when that took less than this many seconds:
-# first-run costs (allocation) matter only in short runs, and long ones (l at B=2048) take minutes each.
+# A rollout is timed on its first run after compiling. When that took less than this many seconds it is run
+# SHORT_RUNS more times and the median of those is reported: first-run costs (allocation) and the machine's
+# noise matter in short runs (0.1 s at B=16, where one run varied by 30 %), and long ones take minutes.
 REPEAT_BELOW_S = 2.0
+SHORT_RUNS = 5
 LOOP_WARMUP = 20  # untimed calls first, so allocation and dispatch caches are warm
 SEED = 0
 NO_LEVEL_LOADER = "--level needs the level loader (kinetix.levels), which is not built yet"
@@ -119,6 +121,27 @@ def _all_finite(state) -> bool:
     return all(bool(np.isfinite(a).all()) for a in arrays if np.issubdtype(a.dtype, np.floating))
 
 
+def timed_runs(run: Callable[[], Any]) -> tuple[float, Any, int]:
+    """(seconds of one run, its result, how many runs were timed) for a compiled, argument-free `run`.
+
+    The first run is reported when it took REPEAT_BELOW_S or more; otherwise it only warms up and the
+    median of SHORT_RUNS further runs is reported.
+    """
+    import jax
+
+    start = time.perf_counter()
+    result = jax.block_until_ready(run())
+    seconds = time.perf_counter() - start
+    if seconds >= REPEAT_BELOW_S:
+        return seconds, result, 1
+    times = []
+    for _ in range(SHORT_RUNS):
+        start = time.perf_counter()
+        result = jax.block_until_ready(run())
+        times.append(time.perf_counter() - start)
+    return sorted(times)[len(times) // 2], result, SHORT_RUNS
+
+
 def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = True) -> dict:
     """Steps per second of `batch` scenes stepped `steps` times inside one jitted scan, and its cold compile time."""
     import jax
@@ -148,13 +171,7 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
     compiled = jax.jit(rollout).lower(scenes, params, motor, thrust).compile()
     compile_s = time.perf_counter() - start
 
-    start = time.perf_counter()
-    final = jax.block_until_ready(compiled(scenes, params, motor, thrust))
-    seconds = time.perf_counter() - start
-    if seconds < REPEAT_BELOW_S:  # a short run is skewed by first-run allocations: time a second one
-        start = time.perf_counter()
-        final = jax.block_until_ready(compiled(scenes, params, motor, thrust))
-        seconds = time.perf_counter() - start
+    seconds, final, runs = timed_runs(lambda: compiled(scenes, params, motor, thrust))
     return {
         "what": "engine",
         "size": workload.name,
@@ -162,6 +179,7 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
         "steps": steps,
         "steps_per_s": batch * steps / seconds,
         "seconds": seconds,
+        "runs": runs,
         "compile_s": compile_s,
         "devices": batch_devices(batch),
         "finite": _all_finite(final),

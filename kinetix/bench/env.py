@@ -31,11 +31,11 @@ from kinetix.bench.engine import (
     COMPILE_LOOP_CALLS,
     LOOP_CALLS,
     LOOP_WARMUP,
-    REPEAT_BELOW_S,
     SEED,
     cold_compiles,
     peak_rss_mb,
     run_with_interactive_loops,
+    timed_runs,
 )
 
 REPO_DIR = Path(__file__).resolve().parents[2]
@@ -105,13 +105,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
     compiled = jax.jit(rollout).lower(keys, params).compile()
     compile_s = time.perf_counter() - start
 
-    start = time.perf_counter()
-    result = jax.block_until_ready(compiled(keys, params))
-    seconds = time.perf_counter() - start
-    if seconds < REPEAT_BELOW_S:  # a short run is skewed by first-run allocations: time a second one
-        start = time.perf_counter()
-        result = jax.block_until_ready(compiled(keys, params))
-        seconds = time.perf_counter() - start
+    seconds, result, runs = timed_runs(lambda: compiled(keys, params))
     states, _, episodes_ended = result
     return {
         "what": "env",
@@ -121,6 +115,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
         "steps": steps,
         "steps_per_s": batch * steps / seconds,
         "seconds": seconds,
+        "runs": runs,
         "compile_s": compile_s,
         "devices": batch_devices(batch),
         "episodes_ended": int(episodes_ended.sum()),

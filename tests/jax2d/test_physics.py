@@ -399,8 +399,8 @@ def _random_run(states: jax2d.SimState, params: jax2d.SimParams, key: jax.Array)
     """Step a batch RANDOM_STEPS times with fresh random actions each step.
 
     Returns the final states, whether every float leaf was finite after every step,
-    and per scene the furthest any dynamic body's centre got outside the world box
-    and the fastest any body moved.
+    per scene and body (B, N) the furthest its centre got outside the world box (-inf for
+    static bodies), and per scene the fastest any body moved.
     """
     batch, num_joints, num_thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
     step = jax.vmap(scenes.STEP, in_axes=(0, None, 0, 0))
@@ -414,11 +414,11 @@ def _random_run(states: jax2d.SimState, params: jax2d.SimParams, key: jax.Array)
         s = step(s, params, motors, thrusts)
         p = s.bodies.position
         out = jnp.max(jnp.maximum(-p, p - scenes.WORLD), axis=-1)  # > 0: the centre left [0, WORLD]^2
-        outside = jnp.maximum(outside, jnp.max(jnp.where(dynamic, out, -jnp.inf), axis=-1))
+        outside = jnp.maximum(outside, jnp.where(dynamic, out, -jnp.inf))
         speed = jnp.maximum(speed, jnp.max(jnp.linalg.norm(s.bodies.velocity, axis=-1), axis=-1))
         return (s, finite & _finite(s), outside, speed), None
 
-    init = (states, _finite(states), jnp.full((batch,), -jnp.inf), jnp.zeros((batch,)))
+    init = (states, _finite(states), jnp.full(dynamic.shape, -jnp.inf), jnp.zeros((batch,)))
     (final, finite, outside, speed), _ = jax.lax.scan(body, init, jax.random.split(key, RANDOM_STEPS))
     return final, finite, outside, speed
 
@@ -428,7 +428,10 @@ def test_random_crowded_scenes_stay_finite():
     built = [scenes.random_scene(seed, RANDOM) for seed in range(RANDOM_SCENES)]
     states = scenes.stack([s for s, _ in built])
     final, finite, outside, speed = _random_run(states, PARAMS, jax.random.key(0))
-    outside, speed = np.asarray(outside), np.asarray(speed)
+    # A body linked to a wall through a chain of joints does not collide with that wall, so it may
+    # legitimately swing through it (scene seed 7 does): only the other bodies must stay inside.
+    linked = np.stack([_linked_to_walls(state) for state, _ in built])
+    outside, speed = np.max(np.where(linked, -np.inf, np.asarray(outside)), axis=-1), np.asarray(speed)
 
     gaps, gap_scene = [], []  # end-of-run anchor gap of every joint between two dynamic bodies, and its scene
     for i, (state, joints) in enumerate(built):
@@ -450,14 +453,31 @@ def test_random_crowded_scenes_stay_finite():
     RANDOM_RESULTS.update(outside=outside, gaps=gaps)
 
 
+def _linked_to_walls(state: jax2d.SimState) -> np.ndarray:
+    """(N,) whether a chain of active joints links each body to one of the four walls (slots 0-3)."""
+    joints = state.joints
+    pairs = [(int(a), int(b)) for a, b, on in zip(np.asarray(joints.a), np.asarray(joints.b),
+                                                  np.asarray(joints.active), strict=True) if on]
+    linked = np.zeros(state.bodies.active.shape[0], bool)
+    linked[:4] = True
+    grew = True
+    while grew:
+        grew = False
+        for a, b in pairs:
+            if linked[a] != linked[b]:
+                linked[a] = linked[b] = grew = True
+    return linked
+
+
 # Filled by the run above so the known-defect check below reuses it instead of simulating again.
 RANDOM_RESULTS: dict = {}
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known defect (docs/engine.md, Known problems): in a few of the 64 crowded "
-                   "scenes a very light hub carrying several motor joints blows up within a step at 4 substeps "
-                   "(stable at 8), leaves the world through a wall and its joints tear")
+@pytest.mark.xfail(strict=True, reason="known defect (docs/engine.md, Known problems): scene seed 33's 0.02 kg hub "
+                   "has joint anchors up to 0.93 m from its centre, so the Gauss-Seidel sweeps cannot converge and "
+                   "its joints tear within 3-10 steps; in scenes 6, 13 and 55 joints strained by the overlaps end "
+                   "5-9 cm apart")
 def test_random_crowded_scenes_keep_bodies_inside_and_joints_attached():
     if not RANDOM_RESULTS:
         pytest.skip("needs test_random_crowded_scenes_stay_finite in the same run")

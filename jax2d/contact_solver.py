@@ -164,6 +164,7 @@ class Schedule(NamedTuple):
 
     order: jax.Array  # (C,) int32: the live colours first (ascending), then the others
     count: jax.Array  # () int32: how many colours are live
+    points: jax.Array  # (C,) int32: 2 if a slot of the colour has a second point in some scene, else 1
 
 
 def schedule(const) -> Schedule:
@@ -173,16 +174,22 @@ def schedule(const) -> Schedule:
     and the sweeps skip it. Most colours are empty in a real level (the reference levels
     touch 3 of 7, 9 and 15 on average), so this makes a step at a small batch much cheaper;
     a batch of very different scenes skips only the colours empty in all of them.
+
+    Likewise the point loops stop after the first point in a colour where no slot has a second
+    one in any scene (contacts with a circle have one point): solving an absent point changes
+    nothing.
     """
     i = _ROW["nmass0"]
     masses = const[:, i:i + 2]
     live = jnp.any(masses > 0.0, axis=tuple(range(1, masses.ndim)))
     order = jnp.argsort(~live, stable=True).astype(jnp.int32)
-    return Schedule(order, jnp.sum(live, dtype=jnp.int32))
+    second = jnp.any(masses[:, 1] > 0.0, axis=tuple(range(1, masses.ndim - 1)))
+    return Schedule(order, jnp.sum(live, dtype=jnp.int32), 1 + second.astype(jnp.int32))
 
 
 def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var, plan: Schedule):
-    """Run `solve_colour(va, vb, const_block, var_block) -> (va, vb, new_var_block)` on every live colour in order.
+    """Run `solve_colour(va, vb, const_block, var_block, points) -> (va, vb, new_var_block)` on every live
+    colour in order (points: how many of the two points any slot of the colour has).
 
     A loop over the schedule's live colours: each iteration gathers the K bodies of side a
     and of side b (rows of the batch-last velocity arrays), solves, and writes them back.
@@ -193,7 +200,7 @@ def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var, plan: Sche
     side_a = jnp.asarray(layout.slot_a.reshape(C, K))
     side_b = jnp.asarray(layout.slot_b.reshape(C, K))
     rows = jax.eval_shape(lambda: solve_colour(Vel(*(x[:K] for x in vel)), Vel(*(x[:K] for x in vel)),
-                                               _Block(const[0]), var[0])[2]).shape[0]
+                                               _Block(const[0]), var[0], 2)[2]).shape[0]
 
     def body(i, carry):
         vel, out = carry
@@ -201,7 +208,7 @@ def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var, plan: Sche
         ia, ib = side_a[c], side_b[c]
         va = Vel(*(x[ia] for x in vel))
         vb = Vel(*(x[ib] for x in vel))
-        va, vb, new = solve_colour(va, vb, _Block(const[c]), var[c])
+        va, vb, new = solve_colour(va, vb, _Block(const[c]), var[c], plan.points[c])
         # No body appears twice in a colour, so the writes do not overlap.
         vel = Vel(*(x.at[ia].set(a, unique_indices=True).at[ib].set(b, unique_indices=True)
                     for x, a, b in zip(vel, va, vb, strict=True)))
@@ -224,7 +231,7 @@ def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule)
     always runs in colour order, so batched and single runs agree bitwise.
     """
 
-    def apply_colour(va, vb, c: _Block, var):
+    def apply_colour(va, vb, c: _Block, var, points):
         tx, ty = c.ny, -c.nx
         for k in range(2):
             px = var[k] * c.nx + var[2 + k] * tx
@@ -283,10 +290,11 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * tx, impulse * ty)
         return va, vb, lam_t.at[k].set(new)
 
-    def solve_colour(va, vb, c: _Block, var):
+    def solve_colour(va, vb, c: _Block, var, points):
         va, vb, lam_n, lam_max = jax.lax.fori_loop(
-            0, 2, lambda k, carry: normal(k, carry, c, var[6:8]), (va, vb, var[0:2], var[4:6]))
-        va, vb, lam_t = jax.lax.fori_loop(0, 2, lambda k, carry: friction(k, carry, c, lam_n), (va, vb, var[2:4]))
+            0, points, lambda k, carry: normal(k, carry, c, var[6:8]), (va, vb, var[0:2], var[4:6]))
+        va, vb, lam_t = jax.lax.fori_loop(0, points, lambda k, carry: friction(k, carry, c, lam_n),
+                                          (va, vb, var[2:4]))
         return va, vb, jnp.concatenate([lam_n, lam_t, lam_max])
 
     return _sweep(layout, vel, solve_colour, const, jnp.concatenate([impulses, separation], axis=1), plan)
@@ -309,8 +317,9 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, pla
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
         return va, vb, lam_n.at[k].set(new)
 
-    def solve_colour(va, vb, c: _Block, var):
-        va, vb, lam_n = jax.lax.fori_loop(0, 2, lambda k, carry: bounce(k, carry, c, var[4:6]), (va, vb, var[0:2]))
+    def solve_colour(va, vb, c: _Block, var, points):
+        va, vb, lam_n = jax.lax.fori_loop(0, points, lambda k, carry: bounce(k, carry, c, var[4:6]),
+                                          (va, vb, var[0:2]))
         return va, vb, jnp.concatenate([lam_n, var[2:]])
 
     # Most steps bounce nowhere in the batch; then the sweep would change nothing (every impulse

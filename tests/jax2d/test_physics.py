@@ -22,6 +22,7 @@ import pytest
 
 import jax2d
 from jax2d import scene
+from jax2d.step import joint_connected
 from tests.jax2d import scenes
 from tests.jax2d.scenes import rollout
 
@@ -455,18 +456,8 @@ def test_random_crowded_scenes_stay_finite():
 
 def _linked_to_walls(state: jax2d.SimState) -> np.ndarray:
     """(N,) whether a chain of active joints links each body to one of the four walls (slots 0-3)."""
-    joints = state.joints
-    pairs = [(int(a), int(b)) for a, b, on in zip(np.asarray(joints.a), np.asarray(joints.b),
-                                                  np.asarray(joints.active), strict=True) if on]
-    linked = np.zeros(state.bodies.active.shape[0], bool)
-    linked[:4] = True
-    grew = True
-    while grew:
-        grew = False
-        for a, b in pairs:
-            if linked[a] != linked[b]:
-                linked[a] = linked[b] = grew = True
-    return linked
+    reach = joint_connected(state.joints, state.bodies.active.shape[0])
+    return np.asarray(jnp.any(reach[:4], axis=0))
 
 
 # Filled by the run above so the known-defect check below reuses it instead of simulating again.

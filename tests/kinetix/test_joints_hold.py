@@ -16,7 +16,7 @@ import pytest
 import jax2d
 from kinetix.generate import sample_level
 from kinetix.levels import load_level
-from tests.kinetix.test_project_levels import joint_gaps
+from tests.kinetix.test_project_levels import all_finite, joint_gaps
 
 STEPS = 2000
 GENERATED = 64
@@ -32,9 +32,7 @@ def _run(states: jax2d.SimState, key: jax.Array):
     batch, joints, thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
     step = jax.vmap(lambda s, m, t: jax2d.step(s, jax2d.SimParams(), m, t))
 
-    def finite(s):
-        leaves = [x for x in jax.tree.leaves(s) if jnp.issubdtype(x.dtype, jnp.floating)]
-        return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x), axis=tuple(range(1, x.ndim))) for x in leaves]), axis=0)
+    finite = jax.vmap(all_finite)
 
     def body(carry, key):
         s, speed, ok = carry

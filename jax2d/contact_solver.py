@@ -303,10 +303,14 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
 def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, plan: Schedule) -> tuple[Vel, jax.Array]:
     """Make approaching points that hit faster than `threshold` leave at e times their approach speed."""
 
+    def hits(rel, lam_max, restitution):
+        """Which points bounce: approaching faster than the threshold, pushed this step, restitution > 0."""
+        return (rel < -threshold) & (lam_max > 0.0) & (restitution > 0.0)
+
     def bounce(k, carry, c: _Block, lam_max):
         va, vb, lam_n = carry
         rel = c.point("rel", k)
-        hit = (rel < -threshold) & (lam_max[k] > 0.0) & (c.restitution > 0.0)
+        hit = hits(rel, lam_max[k], c.restitution)
         rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
         dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
         vn = dvx * c.nx + dvy * c.ny
@@ -324,7 +328,6 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, pla
 
     # Most steps bounce nowhere in the batch; then the sweep would change nothing (every impulse
     # stays as it is), so it is skipped: a few hundred small kernels per step at a small batch.
-    rel = const[:, _ROW["rel0"]:_ROW["rel0"] + 2]
-    hit = (rel < -threshold) & (impulses[:, 4:6] > 0.0) & (const[:, None, _ROW["restitution"]] > 0.0)
+    hit = hits(const[:, _ROW["rel0"]:_ROW["rel0"] + 2], impulses[:, 4:6], const[:, None, _ROW["restitution"]])
     return jax.lax.cond(jnp.any(hit), lambda: _sweep(layout, vel, solve_colour, const, impulses, plan),
                         lambda: (vel, impulses))

@@ -4,8 +4,10 @@ Soft constraints as in Box2D v3's soft step. Joints connect bodies chosen by the
 level (data, not constants), so bodies are gathered with one-hot rows (J, M)
 built once per step; a masked sum is cheaper under `vmap` than a dynamic gather.
 Joints are solved one after another (Gauss-Seidel) in a loop, which keeps chains
-stiff. Everything here runs on batch-last arrays (step.py): per body (M, *batch),
-per joint (J, *batch), one-hot rows (J, M, *batch).
+stiff; at the end of each step `project` solves all joints at once (joint_block), which
+holds where a few sweeps do not converge (a light body carrying several joints).
+Everything here runs on batch-last arrays (step.py): per body (M, *batch), per joint
+(J, *batch), one-hot rows (J, M, *batch).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jax2d import joint_block
 from jax2d.math2d import Pose, Softness, Vel, cross, one_hot_rows, pick, pick_rows, rotate, safe_inverse, stored
 from jax2d.state import J_ANGULAR, J_LINEAR_X, J_LINEAR_Y, J_LOWER, J_MOTOR, J_UPPER, Joints
 
@@ -22,6 +25,9 @@ from jax2d.state import J_ANGULAR, J_LINEAR_X, J_LINEAR_Y, J_LOWER, J_MOTOR, J_U
 class JointConstraints(NamedTuple):
     sel_a: jax.Array  # (J, M) one-hot row of body a, zero for inactive joints
     sel_b: jax.Array
+    body_a: jax.Array  # (J,) int32 body indices, for joint_block's "same body" test
+    body_b: jax.Array
+    rows: jax.Array  # (3J,) joint_block.row_mask
     ma: jax.Array  # (J,) inverse masses / inertias
     ia: jax.Array
     mb: jax.Array
@@ -57,13 +63,15 @@ def prepare(joints: Joints, num_padded: int, inv_mass, inv_inertia, motor_action
     ia, ib = pick_rows(sel_a, inv_inertia), pick_rows(sel_b, inv_inertia)
     axial = safe_inverse(ia + ib)
     revolute = active * (~joints.fixed)
+    weld = active * joints.fixed
     motor = revolute * joints.motor_on
     action = jnp.clip(motor_actions, -1.0, 1.0)
     return JointConstraints(
-        sel_a=sel_a, sel_b=sel_b,
+        sel_a=sel_a, sel_b=sel_b, body_a=joints.a, body_b=joints.b,
+        rows=joint_block.row_mask(active, weld),
         ma=pick_rows(sel_a, inv_mass), ia=ia, mb=pick_rows(sel_b, inv_mass), ib=ib,
         axial_mass=axial,
-        revolute=revolute, weld=active * joints.fixed, motor=motor,
+        revolute=revolute, weld=weld, motor=motor,
         limit=revolute * joints.limit_on,
         motor_target=joints.motor_speed * params.base_motor_speed * action,
         max_motor_impulse=motor * jnp.abs(joints.motor_power) * params.base_motor_power * axial * h,
@@ -221,3 +229,29 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
         return vel, impulse
 
     return jax.lax.fori_loop(0, plan.count, lambda i, carry: one_joint(plan.order[i], carry), (vel, impulse))
+
+
+def project(jc: JointConstraints, fr: JointFrame, vel: Vel, bias_rate) -> Vel:
+    """Velocities that satisfy every joint's point and weld rows exactly, all joints at once
+    (joint_block), plus `bias_rate` times each row's position error: the joint projection
+    stage at the end of a step. Its impulses are not kept for warm starting."""
+    if jc.rows.shape[0] == 0:
+        return vel
+    a = joint_block.matrix(((jc.body_a, jc.ma, jc.ia, fr.rax, fr.ray), (jc.body_b, jc.mb, jc.ib, fr.rbx, fr.rby)),
+                           jc.rows)
+    vax, vay, wa = pick_rows(jc.sel_a, vel.x), pick_rows(jc.sel_a, vel.y), pick_rows(jc.sel_a, vel.w)
+    vbx, vby, wb = pick_rows(jc.sel_b, vel.x), pick_rows(jc.sel_b, vel.y), pick_rows(jc.sel_b, vel.w)
+    rhs = jnp.stack([(vbx - wb * fr.rby) - (vax - wa * fr.ray) + bias_rate * fr.cx,
+                     (vby + wb * fr.rbx) - (vay + wa * fr.rax) + bias_rate * fr.cy,
+                     wb - wa + bias_rate * fr.angle], axis=1)  # (J, 3, *batch)
+    rows = jc.rows.reshape(rhs.shape)
+    lam = -joint_block.solve(a, (rhs * rows).reshape(jc.rows.shape)).reshape(rhs.shape) * rows
+    px, py, pw = lam[:, 0], lam[:, 1], lam[:, 2]
+    twist_a = -jc.ia * (cross(fr.rax, fr.ray, px, py) + pw)
+    twist_b = jc.ib * (cross(fr.rbx, fr.rby, px, py) + pw)
+
+    def spread(on_a, on_b):  # (J, *batch) per joint end -> (M, *batch) per body
+        return jnp.sum(jc.sel_a * on_a[:, None] + jc.sel_b * on_b[:, None], axis=0)
+
+    return Vel(vel.x + spread(-jc.ma * px, jc.mb * px), vel.y + spread(-jc.ma * py, jc.mb * py),
+               vel.w + spread(twist_a, twist_b))

@@ -184,6 +184,10 @@ class SolverConfig:
     substeps: int = 4
     relax_iterations: int = 1
     warm_start: bool = True
+    # The joint projection stage (step.py, joint_block.py) at the end of each step: velocities
+    # are made to satisfy every joint exactly, closing this fraction of each joint's position
+    # error per step. None skips the stage.
+    joint_projection: float | None = 0.2
     # The first `num_static` polygons are always static (the public Kinetix walls);
     # pairs among them are never checked.
     num_static: int = 0

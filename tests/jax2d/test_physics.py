@@ -385,6 +385,39 @@ def test_welded_star_spins_as_one_rigid_body(hub_side, max_gap, max_spin_error):
     assert drift < max_gap
 
 
+def light_hub_state() -> jax2d.SimState:
+    """A 6 cm square hub (3.6 g) carrying four 0.3 m boxes (90 g each) 0.9 m out, in zero gravity: two welded,
+    two on full-power motors, every anchor 0.6 m from the hub's centre. At those anchors the hub's effective
+    mass is a few hundredths of the boxes': the shape that tore random scene 33 apart."""
+    state, hub = scene.add_rectangle(jax2d.empty_state(CHAIN, gravity=(0.0, 0.0)), (0.0, 0.0), 0.06, 0.06)
+    for k in range(4):
+        d = np.array([math.cos(k * math.pi / 2), math.sin(k * math.pi / 2)])
+        state, arm = scene.add_rectangle(state, 0.9 * d, 0.3, 0.3)
+        if k % 2:
+            state, _ = scene.add_revolute_joint(state, hub, arm, 0.6 * d, motor_on=True, motor_speed=3.0,
+                                                motor_power=3.0)
+        else:
+            state, _ = scene.add_fixed_joint(state, hub, arm, 0.6 * d)
+    return state
+
+
+def test_light_hub_with_far_anchors_holds_together():
+    """Gauss-Seidel sweeps alone do not converge on a light hub whose joints pull against heavy bodies far away
+    (each joint's solve moves the hub alone and undoes the previous one); the joint projection at the end of
+    each step solves all joints at once. Motors flipping between random full-power actions every step for
+    10 s load the soft joints: measured 13 mm at most with the projection, 52 mm without it."""
+    state = light_hub_state()
+    motors = np.random.default_rng(7).uniform(-1.0, 1.0, (600, CHAIN.joints)).astype(np.float32)
+    _, rec = rollout(state, PARAMS, 600, motor_actions=motors)
+    gaps = scenes.anchor_gaps(state, rec["position"], rec["angle"])[:, :4]
+    speed = np.linalg.norm(rec["velocity"][:, :5], axis=-1).max()
+    print(f"\n[light hub, 600 steps of random full-power motor actions] max joint gap {gaps.max() * 1000:.3f} mm, "
+          f"99th percentile {np.percentile(gaps, 99) * 1000:.3f} mm; fastest body {speed:.2f} m/s")
+    assert np.all(np.isfinite(gaps))
+    assert gaps.max() < 0.02
+    assert speed < 20.0
+
+
 # ---------------------------------------------------------------- 9. random crowded scenes
 
 RANDOM_SCENES, RANDOM_STEPS = 64, 2000
@@ -465,10 +498,9 @@ RANDOM_RESULTS: dict = {}
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known defect (docs/engine.md, Known problems): scene seed 33's 0.02 kg hub "
-                   "has joint anchors up to 0.93 m from its centre, so the Gauss-Seidel sweeps cannot converge and "
-                   "its joints tear within 3-10 steps; in scenes 6, 13 and 55 joints strained by the overlaps end "
-                   "5-9 cm apart")
+@pytest.mark.xfail(strict=True, reason="known defect (docs/engine.md, Known problems): in scenes 6, 13 and 55 motors "
+                   "at full power press jointed clusters into overlaps they cannot leave, and their soft joints end "
+                   "5-10 cm apart")
 def test_random_crowded_scenes_keep_bodies_inside_and_joints_attached():
     if not RANDOM_RESULTS:
         pytest.skip("needs test_random_crowded_scenes_stay_finite in the same run")
@@ -493,25 +525,34 @@ def random_actions(rng: np.random.Generator, n_steps: int, batch: tuple[int, ...
 
 def test_large_batches_stepped_in_parts_equal_one_pass():
     """step_batch steps a batch larger than SolverConfig.chunk in equal parts, one after the other
-    (interleaved: part c holds scenes c, c + parts, ...). That only reorders the work, so 20 steps of
-    8 scenes in 4 parts of 2 equal 20 steps in one pass, bitwise, and a batch the parts do not
-    divide (7 scenes) falls back to one pass."""
+    (interleaved: part c holds scenes c, c + parts, ...). That only reorders the work, so each of 20
+    steps of 8 scenes in 4 parts of 2 equals the same step in one pass, and a batch the parts do not
+    divide (7 scenes) falls back to one pass (bitwise). Equality is to float32 rounding, as in
+    test_vmap_equals_separate_runs: programs for different batch widths may contract a multiply
+    and an add into one FMA in different places (the joint projection's arithmetic measured 2e-7),
+    and a long run amplifies such ulps, so each step starts both from the one-pass state."""
     motors, thrusts = random_actions(np.random.default_rng(5), 20, (8,))
     whole, parts = jax2d.SolverConfig(), jax2d.SolverConfig(chunk=2)
 
     @functools.partial(jax.jit, static_argnames="config")
-    def rollout(states, motors, thrusts, config):
-        def one(s, a):
-            return jax2d.step_batch(s, PARAMS, a[0], a[1], config=config), None
-        return jax.lax.scan(one, states, (motors, thrusts))[0]
+    def one_step(states, motors, thrusts, config):
+        return jax2d.step_batch(states, PARAMS, motors, thrusts, config=config)
 
     for batch in (8, 7):
-        states = scenes.stack(small_random_scenes(batch))
-        m, t = jnp.asarray(motors[:, :batch]), jnp.asarray(thrusts[:, :batch])
-        a, b = rollout(states, m, t, whole), rollout(states, m, t, parts)
-        assert float(np.max(np.abs(np.asarray(a.bodies.position) - np.asarray(states.bodies.position)))) > 1e-3
-        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
-            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        states = start = scenes.stack(small_random_scenes(batch))
+        worst = 0.0
+        for t in range(20):
+            m, th = jnp.asarray(motors[t, :batch]), jnp.asarray(thrusts[t, :batch])
+            a, b = one_step(states, m, th, whole), one_step(states, m, th, parts)
+            for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+                x, y = np.asarray(x), np.asarray(y)
+                if batch % 4 or x.dtype.kind != "f":
+                    np.testing.assert_array_equal(x, y)
+                else:
+                    worst = max(worst, float(np.max(np.abs(x - y) / (1.0 + np.abs(x)), initial=0.0)))
+            states = a
+        assert float(np.max(np.abs(np.asarray(states.bodies.position) - np.asarray(start.bodies.position)))) > 1e-3
+        assert worst < 1e-5, worst
 
 
 def test_vmap_equals_separate_runs():

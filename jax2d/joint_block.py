@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-# Added to the diagonal, relative to it, before the Cholesky factorisation. A is only positive
+# Added to the diagonal, relative to it, before the elimination. A is only positive
 # semi-definite: rows that repeat others (a loop of welds, two welds on one pair of bodies) make
 # it singular. The multipliers such rows get along the null space of J^T move no body; this
 # keeps them finite. It also bounds the condition number a light hub gives A.
@@ -63,19 +63,41 @@ def matrix(ends, mask):
     return a * mask[:, None] * mask[None, :] + eye * (1.0 - mask[:, None])
 
 
-def solve(a, rhs) -> jax.Array:
+def solve(a, rhs, order, count) -> jax.Array:
     """x with (A + regularisation) x = rhs, for a (n, n, *batch) and rhs (n, *batch).
 
-    Cholesky through LAPACK, scene by scene, after moving the batch to the front: the same
-    arithmetic for a scene whatever the batch. A zero diagonal (a joint between two static
-    bodies) gets 1, and then a multiplier that moves nothing.
+    A^-1 by Gauss-Jordan elimination in its symmetric form (the sweep operator: sweeping pivot
+    k leaves -(A restricted to the swept rows)^-1 in the swept block, in any order), then one
+    matrix-vector product. Only the rows of joint slots live in some scene of the batch are
+    swept (order: slots, live ones first; count: how many are live), in a loop, so the program
+    is small whatever the capacity; the other rows get 0. A zero diagonal (a joint between two
+    static bodies) gets 1, and then a multiplier that moves nothing. (LAPACK's Cholesky through
+    jax.lax.linalg measured the same speed, but hung a batch split over two CPU devices.)
     """
     n = a.shape[0]
-    diagonal = jnp.diagonal(a, axis1=0, axis2=1)  # (*batch, n)
-    front = jnp.moveaxis(a, (0, 1), (-2, -1))  # (*batch, n, n)
-    front = front + jnp.eye(n, dtype=a.dtype) * (REGULARISATION * diagonal + (diagonal <= 0.0))[..., None, :]
-    factor = jax.lax.linalg.cholesky(front, symmetrize_input=False)
-    b = jnp.moveaxis(rhs, 0, -1)[..., None]
-    y = jax.lax.linalg.triangular_solve(factor, b, left_side=True, lower=True)
-    x = jax.lax.linalg.triangular_solve(factor, y, left_side=True, lower=True, transpose_a=True)
-    return jnp.moveaxis(x[..., 0], -1, 0)
+    rows = jnp.arange(n).reshape((n,) + (1,) * (a.ndim - 2))
+    diagonal = jnp.moveaxis(jnp.diagonal(a, axis1=0, axis2=1), -1, 0)  # (n, *batch)
+    eye = (rows[:, None] == rows[None, :]).astype(a.dtype)  # (n, n, 1...)
+    a = a + eye * (REGULARISATION * diagonal + (diagonal <= 0.0))[None, :]
+
+    def sweep(k, a):
+        row = jax.lax.dynamic_index_in_dim(a, k, axis=0, keepdims=False)  # (n, *batch), also column k
+        inv = 1.0 / jax.lax.dynamic_index_in_dim(row, k, axis=0, keepdims=False)
+        scaled = row * inv
+        at_k = rows == k  # (n, 1...)
+        on_row, on_column = at_k[:, None], at_k[None, :]
+        # Row and column k are set, not updated: a_kj - a_kk (a_kj / a_kk) would leave a rounding
+        # residue the size of a_kj's last bit, large against the swept values.
+        edge = jnp.where(on_row & on_column, -inv, jnp.where(on_row, scaled[None, :], scaled[:, None]))
+        return jnp.where(on_row | on_column, edge, a - row[:, None] * scaled[None, :])
+
+    def joint(i, carry):  # a joint slot's three rows per loop iteration: fewer iterations, fewer waits
+        a, swept_rows = carry
+        first = 3 * order[i]
+        for r in range(3):
+            a = sweep(first + r, a)
+        return a, swept_rows | ((rows >= first) & (rows < first + 3))
+
+    a, swept_rows = jax.lax.fori_loop(0, count, joint, (a, jnp.zeros(rows.shape, bool)))
+    kept = swept_rows.astype(a.dtype)
+    return -jnp.sum(a * (kept[:, None] * kept[None, :]) * rhs[None], axis=1)

@@ -231,7 +231,7 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
     return jax.lax.fori_loop(0, plan.count, lambda i, carry: one_joint(plan.order[i], carry), (vel, impulse))
 
 
-def project(jc: JointConstraints, fr: JointFrame, vel: Vel, bias_rate) -> Vel:
+def project(jc: JointConstraints, fr: JointFrame, vel: Vel, bias_rate, plan: Schedule) -> Vel:
     """Velocities that satisfy every joint's point and weld rows exactly, all joints at once
     (joint_block), plus `bias_rate` times each row's position error: the joint projection
     stage at the end of a step. Its impulses are not kept for warm starting."""
@@ -245,7 +245,9 @@ def project(jc: JointConstraints, fr: JointFrame, vel: Vel, bias_rate) -> Vel:
                      (vby + wb * fr.rbx) - (vay + wa * fr.rax) + bias_rate * fr.cy,
                      wb - wa + bias_rate * fr.angle], axis=1)  # (J, 3, *batch)
     rows = jc.rows.reshape(rhs.shape)
-    lam = -joint_block.solve(a, (rhs * rows).reshape(jc.rows.shape)).reshape(rhs.shape) * rows
+    lam = joint_block.solve(a, (rhs * rows).reshape(jc.rows.shape), plan.order, plan.count).reshape(rhs.shape)
+    # A scene whose system could not be solved (non-finite input) is left as it is.
+    lam = jnp.where(jnp.isfinite(lam), -lam * rows, 0.0)
     px, py, pw = lam[:, 0], lam[:, 1], lam[:, 2]
     twist_a = -jc.ia * (cross(fr.rax, fr.ray, px, py) + pw)
     twist_b = jc.ib * (cross(fr.rbx, fr.rby, px, py) + pw)

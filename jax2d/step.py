@@ -111,7 +111,8 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     vel, cimp = contact_solver.restitution(layout, loop.const, cimp, vel, loop.restitution_threshold, colours)
     if config.joint_projection is not None:
         frame = joint_solver.frame(loop.joints, loop.jc, pose)
-        vel = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h))
+        vel = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h),
+                                   joint_solver.schedule(loop.jc))
     first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
     return jax.vmap(_store)(states, params, pose, vel, jax.vmap(contact_solver.unpack_impulses)(cimp), jimp,

@@ -107,12 +107,12 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     loop, valid = _prepare(layout, scene, params, last(motor_actions), last(thruster_actions), manifold,
                            last(jointed), config)
     colours = contact_solver.schedule(loop.const)
-    pose, vel, cimp, jimp = _substeps(layout, loop, colours, config)
+    joints = joint_solver.schedule(loop.jc)
+    pose, vel, cimp, jimp = _substeps(layout, loop, colours, joints, config)
     vel, cimp = contact_solver.restitution(layout, loop.const, cimp, vel, loop.restitution_threshold, colours)
     if config.joint_projection is not None:
         frame = joint_solver.frame(loop.joints, loop.jc, pose)
-        vel = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h),
-                                   joint_solver.schedule(loop.jc))
+        vel = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h), joints)
     first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
     return jax.vmap(_store)(states, params, pose, vel, jax.vmap(contact_solver.unpack_impulses)(cimp), jimp,
@@ -211,15 +211,15 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
     return loop, valid
 
 
-def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedule, config: SolverConfig):
+def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedule, joints: joint_solver.Schedule,
+              config: SolverConfig):
     """The substep loop on batch-last arrays: every function here broadcasts over trailing batch axes.
 
-    colours: the colours with a point in some scene (contact_solver.schedule); the joint
-    loops likewise visit only the slots active in some scene (joint_solver.schedule).
+    colours: the colours with a point in some scene (contact_solver.schedule); joints: the joint
+    slots active in some scene (joint_solver.schedule), which the joint loops visit.
     """
     h = d.h
     inv_h = 1.0 / h
-    joints = joint_solver.schedule(d.jc)
 
     def substep(_, carry):
         pose, vel, cimp, jimp = carry

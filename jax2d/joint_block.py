@@ -63,8 +63,9 @@ def matrix(ends, mask):
     return a * mask[:, None] * mask[None, :] + eye * (1.0 - mask[:, None])
 
 
-def solve(a, rhs, order, count) -> jax.Array:
-    """x with (A + regularisation) x = rhs, for a (n, n, *batch) and rhs (n, *batch).
+def solve(a, rhs: tuple[jax.Array, ...], order, count) -> tuple[jax.Array, ...]:
+    """x with (A + regularisation) x = r for each right-hand side r in `rhs`, for a (n, n, *batch) and
+    each r (n, *batch). The inverse is computed once and serves them all.
 
     A^-1 by Gauss-Jordan elimination in its symmetric form (the sweep operator: sweeping pivot
     k leaves -(A restricted to the swept rows)^-1 in the swept block, in any order), then one
@@ -100,4 +101,5 @@ def solve(a, rhs, order, count) -> jax.Array:
 
     a, swept_rows = jax.lax.fori_loop(0, count, joint, (a, jnp.zeros(rows.shape, bool)))
     kept = swept_rows.astype(a.dtype)
-    return -jnp.sum(a * (kept[:, None] * kept[None, :]) * rhs[None], axis=1)
+    inverse = a * (kept[:, None] * kept[None, :])
+    return tuple(-jnp.sum(inverse * r[None], axis=1) for r in rhs)

@@ -188,12 +188,21 @@ class SolverConfig:
     # are made to satisfy every joint exactly, closing this fraction of each joint's position
     # error per step. None skips the stage.
     joint_projection: float | None = 0.2
+    # The same stage's position part: this fraction of each joint's position error is removed by
+    # moving the bodies (up to a cap per step, joint_solver.MAX_SHIFT / MAX_TURN), without changing
+    # velocities. None skips it; it needs joint_projection.
+    joint_position_projection: float | None = 1.0
     # The first `num_static` polygons are always static (the public Kinetix walls);
     # pairs among them are never checked.
     num_static: int = 0
     # Batches larger than this are stepped in equal parts of at most this many scenes, one part
     # after the other, so each part's constraint data stays in the CPU's cache (step.step_batch).
     chunk: int = 256
+
+    def __post_init__(self):
+        if self.joint_position_projection is not None and self.joint_projection is None:
+            raise ValueError("joint_position_projection is a part of the joint projection stage: it needs "
+                             "joint_projection (set both to None to skip the stage)")
 
 
 def empty_state(capacity: Capacity, gravity=(0.0, -9.81)) -> SimState:

@@ -9,7 +9,7 @@
         integrate positions
         relax                   joints then contacts, without bias (removes bias energy)
     restitution             bounce where points hit faster than the threshold
-    joint projection        all joints' point and weld rows solved at once, on velocities
+    joint projection        all joints' point and weld rows solved at once, on velocities and positions
     store                   impulses for the next step; clamp and NaN guard
 
 Inside the step every body quantity is its own array over M padded bodies
@@ -112,7 +112,10 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     vel, cimp = contact_solver.restitution(layout, loop.const, cimp, vel, loop.restitution_threshold, colours)
     if config.joint_projection is not None:
         frame = joint_solver.frame(loop.joints, loop.jc, pose)
-        vel = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h), joints)
+        vel, shift = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h),
+                                          joints, config.joint_position_projection)
+        if shift is not None:
+            pose = Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)
     first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
     return jax.vmap(_store)(states, params, pose, vel, jax.vmap(contact_solver.unpack_impulses)(cimp), jimp,

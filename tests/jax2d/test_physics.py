@@ -405,7 +405,8 @@ def test_light_hub_with_far_anchors_holds_together():
     """Gauss-Seidel sweeps alone do not converge on a light hub whose joints pull against heavy bodies far away
     (each joint's solve moves the hub alone and undoes the previous one); the joint projection at the end of
     each step solves all joints at once. Motors flipping between random full-power actions every step for
-    10 s load the soft joints: measured 13 mm at most with the projection, 52 mm without it."""
+    10 s load the soft joints: measured 1.1 mm at most with the projection, 13 mm with its velocity part
+    alone (SolverConfig(joint_position_projection=None)) and 52 mm without it."""
     state = light_hub_state()
     motors = np.random.default_rng(7).uniform(-1.0, 1.0, (600, CHAIN.joints)).astype(np.float32)
     _, rec = rollout(state, PARAMS, 600, motor_actions=motors)
@@ -414,7 +415,7 @@ def test_light_hub_with_far_anchors_holds_together():
     print(f"\n[light hub, 600 steps of random full-power motor actions] max joint gap {gaps.max() * 1000:.3f} mm, "
           f"99th percentile {np.percentile(gaps, 99) * 1000:.3f} mm; fastest body {speed:.2f} m/s")
     assert np.all(np.isfinite(gaps))
-    assert gaps.max() < 0.02
+    assert gaps.max() < 0.005
     assert speed < 20.0
 
 
@@ -498,16 +499,16 @@ RANDOM_RESULTS: dict = {}
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known defect (docs/engine.md, Known problems): in scenes 6, 13 and 55 motors "
-                   "at full power press jointed clusters into overlaps they cannot leave, and their soft joints end "
-                   "5-10 cm apart")
 def test_random_crowded_scenes_keep_bodies_inside_and_joints_attached():
     if not RANDOM_RESULTS:
         pytest.skip("needs test_random_crowded_scenes_stay_finite in the same run")
     # A centre may poke past the inner wall face by less than a wall thickness only when squeezed; beyond that
     # a body has tunnelled into or through a wall.
     assert RANDOM_RESULTS["outside"].max() < scenes.WALL
-    assert RANDOM_RESULTS["gaps"].max() < 0.05
+    # 1 cm is a pixel at the public Kinetix's 500 px for 5 m. Motors at full power press some clusters into
+    # overlaps they cannot leave; without the joint projection's position part, soft joints ended such runs
+    # 5-10 cm apart (scenes 6, 13 and 55).
+    assert RANDOM_RESULTS["gaps"].max() < 0.01
 
 
 # ---------------------------------------------------------------- 10-11. batching and determinism

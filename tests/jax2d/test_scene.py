@@ -11,7 +11,7 @@ from jax2d import scene
 from jax2d.geometry import GeometryError
 from jax2d.pairs import contact_layout
 from jax2d.scene import CapacityError
-from jax2d.state import Capacity, empty_state
+from jax2d.state import Capacity, SolverConfig, empty_state
 
 CAP = Capacity(polygons=3, circles=2, joints=2, thrusters=2, max_vertices=5)
 P = CAP.polygons
@@ -367,3 +367,9 @@ def test_batched_state_is_refused(empty):
     batch = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), empty)
     with pytest.raises(ValueError, match="one scene"):
         scene.add_circle(batch, (0, 0), 1.0)
+
+
+def test_position_projection_without_the_projection_stage_is_refused():
+    SolverConfig(joint_projection=None, joint_position_projection=None)  # the stage off: fine
+    with pytest.raises(ValueError, match="needs joint_projection"):
+        SolverConfig(joint_projection=None)

@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse, stored
 from jax2d.pairs import ContactLayout
@@ -188,33 +189,42 @@ def schedule(const) -> Schedule:
 
 
 def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var, plan: Schedule):
-    """Run `solve_colour(va, vb, const_block, var_block, points) -> (va, vb, new_var_block)` on every live
+    """Run `solve_colour(sides, const_block, var_block, points) -> (sides, new_var_block)` on every live
     colour in order (points: how many of the two points any slot of the colour has).
 
-    A loop over the schedule's live colours: each iteration gathers the K bodies of side a
-    and of side b (rows of the batch-last velocity arrays), solves, and writes them back.
-    Skipped colours keep the first rows of their var block, which is what solving them
-    would give. Returns the velocities and the (C, F_out, K, *batch) new var blocks.
+    A loop over the schedule's live colours: each iteration gathers the velocities of the K bodies
+    of side a and the K of side b as one (3, 2K, *batch) array (see _split / _join), solves, and
+    writes them back. One array rather than six: each gather, scatter and velocity update is then
+    one kernel, and a step at a small batch is a long chain of such small kernels. Skipped
+    colours keep the first rows of their var block, which is what solving them would give.
+    Returns the velocities and the (C, F_out, K, *batch) new var blocks.
     """
     C, K = layout.num_colours, layout.per_colour
-    side_a = jnp.asarray(layout.slot_a.reshape(C, K))
-    side_b = jnp.asarray(layout.slot_b.reshape(C, K))
-    rows = jax.eval_shape(lambda: solve_colour(Vel(*(x[:K] for x in vel)), Vel(*(x[:K] for x in vel)),
-                                               _Block(const[0]), var[0], 2)[2]).shape[0]
+    sides = jnp.asarray(np.concatenate([layout.slot_a.reshape(C, K), layout.slot_b.reshape(C, K)], axis=1))
+    stacked = jnp.stack(vel)  # (3, M, *batch)
+    rows = jax.eval_shape(lambda: solve_colour(stacked[:, :2 * K], _Block(const[0]), var[0], 2)[1]).shape[0]
 
     def body(i, carry):
-        vel, out = carry
+        v, out = carry
         c = plan.order[i]
-        ia, ib = side_a[c], side_b[c]
-        va = Vel(*(x[ia] for x in vel))
-        vb = Vel(*(x[ib] for x in vel))
-        va, vb, new = solve_colour(va, vb, _Block(const[c]), var[c], plan.points[c])
+        index = sides[c]
+        both, new = solve_colour(v[:, index], _Block(const[c]), var[c], plan.points[c])
         # No body appears twice in a colour, so the writes do not overlap.
-        vel = Vel(*(x.at[ia].set(a, unique_indices=True).at[ib].set(b, unique_indices=True)
-                    for x, a, b in zip(vel, va, vb, strict=True)))
-        return vel, out.at[c].set(new)
+        return v.at[:, index].set(both, unique_indices=True), out.at[c].set(new)
 
-    return jax.lax.fori_loop(0, plan.count, body, (vel, var[:, :rows]))
+    v, out = jax.lax.fori_loop(0, plan.count, body, (stacked, var[:, :rows]))
+    return Vel(v[0], v[1], v[2]), out
+
+
+def _split(both) -> tuple[Vel, Vel]:
+    """(3, 2K, *batch) velocities of a colour's two sides -> side a, side b."""
+    K = both.shape[1] // 2
+    return Vel(both[0, :K], both[1, :K], both[2, :K]), Vel(both[0, K:], both[1, K:], both[2, K:])
+
+
+def _join(va: Vel, vb: Vel):
+    """The inverse of _split."""
+    return jnp.stack([jnp.concatenate([a, b]) for a, b in zip(va, vb, strict=True)])
 
 
 def _apply(va: Vel, vb: Vel, ma, ia, mb, ib, rax, ray, rbx, rby, px, py):
@@ -231,14 +241,15 @@ def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule)
     always runs in colour order, so batched and single runs agree bitwise.
     """
 
-    def apply_colour(va, vb, c: _Block, var, points):
+    def apply_colour(both, c: _Block, var, points):
+        va, vb = _split(both)
         tx, ty = c.ny, -c.nx
         for k in range(2):
             px = var[k] * c.nx + var[2 + k] * tx
             py = var[k] * c.ny + var[2 + k] * ty
             va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, c.point("rax", k), c.point("ray", k),
                             c.point("rbx", k), c.point("rby", k), px, py)
-        return va, vb, var
+        return _join(va, vb), var
 
     return _sweep(layout, vel, apply_colour, const, impulses, plan)[0]
 
@@ -254,7 +265,8 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
     """
 
     def normal(k, carry, c: _Block, sep):
-        va, vb, lam_n, lam_max = carry
+        both, lam_n, lam_max = carry
+        va, vb = _split(both)
         rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
         dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
         vn = dvx * c.nx + dvy * c.ny
@@ -275,10 +287,11 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         new = stored(k, accumulate, vn, old, bias, mass_scale, impulse_scale)
         impulse = new - old
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
-        return va, vb, lam_n.at[k].set(new), lam_max.at[k].set(jnp.maximum(lam_max[k], impulse))
+        return _join(va, vb), lam_n.at[k].set(new), lam_max.at[k].set(jnp.maximum(lam_max[k], impulse))
 
     def friction(k, carry, c: _Block, lam_n):
-        va, vb, lam_t = carry
+        both, lam_t = carry
+        va, vb = _split(both)
         tx, ty = c.ny, -c.nx
         rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
         dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
@@ -288,14 +301,13 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         new = stored(k, lambda old, vt, limit: jnp.clip(old - c.point("tmass", k) * vt, -limit, limit), old, vt, limit)
         impulse = new - old
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * tx, impulse * ty)
-        return va, vb, lam_t.at[k].set(new)
+        return _join(va, vb), lam_t.at[k].set(new)
 
-    def solve_colour(va, vb, c: _Block, var, points):
-        va, vb, lam_n, lam_max = jax.lax.fori_loop(
-            0, points, lambda k, carry: normal(k, carry, c, var[6:8]), (va, vb, var[0:2], var[4:6]))
-        va, vb, lam_t = jax.lax.fori_loop(0, points, lambda k, carry: friction(k, carry, c, lam_n),
-                                          (va, vb, var[2:4]))
-        return va, vb, jnp.concatenate([lam_n, lam_t, lam_max])
+    def solve_colour(both, c: _Block, var, points):
+        both, lam_n, lam_max = jax.lax.fori_loop(
+            0, points, lambda k, carry: normal(k, carry, c, var[6:8]), (both, var[0:2], var[4:6]))
+        both, lam_t = jax.lax.fori_loop(0, points, lambda k, carry: friction(k, carry, c, lam_n), (both, var[2:4]))
+        return both, jnp.concatenate([lam_n, lam_t, lam_max])
 
     return _sweep(layout, vel, solve_colour, const, jnp.concatenate([impulses, separation], axis=1), plan)
 
@@ -308,7 +320,8 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, pla
         return (rel < -threshold) & (lam_max > 0.0) & (restitution > 0.0)
 
     def bounce(k, carry, c: _Block, lam_max):
-        va, vb, lam_n = carry
+        both, lam_n = carry
+        va, vb = _split(both)
         rel = c.point("rel", k)
         hit = hits(rel, lam_max[k], c.restitution)
         rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
@@ -319,12 +332,11 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, pla
             old + jnp.where(hit, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0), 0.0), old, vn)
         impulse = new - old
         va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
-        return va, vb, lam_n.at[k].set(new)
+        return _join(va, vb), lam_n.at[k].set(new)
 
-    def solve_colour(va, vb, c: _Block, var, points):
-        va, vb, lam_n = jax.lax.fori_loop(0, points, lambda k, carry: bounce(k, carry, c, var[4:6]),
-                                          (va, vb, var[0:2]))
-        return va, vb, jnp.concatenate([lam_n, var[2:]])
+    def solve_colour(both, c: _Block, var, points):
+        both, lam_n = jax.lax.fori_loop(0, points, lambda k, carry: bounce(k, carry, c, var[4:6]), (both, var[0:2]))
+        return both, jnp.concatenate([lam_n, var[2:]])
 
     # Most steps bounce nowhere in the batch; then the sweep would change nothing (every impulse
     # stays as it is), so it is skipped: a few hundred small kernels per step at a small batch.

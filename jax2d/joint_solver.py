@@ -114,18 +114,25 @@ def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, plan: Sc
     if impulse.shape[0] == 0:
         return vel
 
-    def one_joint(j, vel):
+    def one_joint(j, v):
         lam = impulse[j]
         px, py = lam[J_LINEAR_X], lam[J_LINEAR_Y]
         turn = lam[J_MOTOR] + lam[J_LOWER] - lam[J_UPPER] + lam[J_ANGULAR]
         ta = -jc.ia[j] * (cross(fr.rax[j], fr.ray[j], px, py) + turn)
         tb = jc.ib[j] * (cross(fr.rbx[j], fr.rby[j], px, py) + turn)
-        sa, sb = jc.sel_a[j], jc.sel_b[j]
-        return Vel(vel.x - sa * (jc.ma[j] * px) + sb * (jc.mb[j] * px),
-                   vel.y - sa * (jc.ma[j] * py) + sb * (jc.mb[j] * py),
-                   vel.w + sa * ta + sb * tb)
+        return _add_at_ends(v, jc.sel_a[j], jc.sel_b[j], (-(jc.ma[j] * px), -(jc.ma[j] * py), ta),
+                            (jc.mb[j] * px, jc.mb[j] * py, tb))
 
-    return jax.lax.fori_loop(0, plan.count, lambda i, vel: one_joint(plan.order[i], vel), vel)
+    v = jax.lax.fori_loop(0, plan.count, lambda i, v: one_joint(plan.order[i], v), jnp.stack(vel))
+    return Vel(v[0], v[1], v[2])
+
+
+def _add_at_ends(v, sa, sb, on_a, on_b):
+    """v (3, M, *batch) stacked velocities plus (x, y, w) changes on_a at the body sa selects and on_b at sb's.
+
+    The loops carry the velocities as one array so that each joint's update is one kernel, not three.
+    """
+    return jnp.stack([v[k] + sa * on_a[k] + sb * on_b[k] for k in range(3)])
 
 
 def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool):
@@ -206,11 +213,11 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
         return px, py, pw
 
     def one_joint(j, carry):
-        vel, impulse = carry
+        v, impulse = carry
         lam = impulse[j]
         sa, sb = jc.sel_a[j], jc.sel_b[j]
-        vax, vay, wa0 = pick(sa, vel.x), pick(sa, vel.y), pick(sa, vel.w)
-        vbx, vby, wb0 = pick(sb, vel.x), pick(sb, vel.y), pick(sb, vel.w)
+        vax, vay, wa0 = pick(sa, v[0]), pick(sa, v[1]), pick(sa, v[2])
+        vbx, vby, wb0 = pick(sb, v[0]), pick(sb, v[1]), pick(sb, v[2])
         # Each stage's results are stored (see math2d.stored) before the next reads them.
         motor, lower, upper, wa, wb = stored(j, angular, j, lam, wa0, wb0)
         px, py, pw = stored(j, point, j, lam, vax, vay, wa, vbx, vby, wb)
@@ -223,12 +230,11 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
         columns[J_ANGULAR], columns[J_MOTOR] = lam[J_ANGULAR] + pw, motor
         columns[J_LOWER], columns[J_UPPER] = lower, upper
         impulse = impulse.at[j].set(jnp.stack(columns))
-        vel = Vel(vel.x - sa * (ma * px) + sb * (mb * px),
-                  vel.y - sa * (ma * py) + sb * (mb * py),
-                  vel.w + sa * dwa + sb * dwb)
-        return vel, impulse
+        return _add_at_ends(v, sa, sb, (-(ma * px), -(ma * py), dwa), (mb * px, mb * py, dwb)), impulse
 
-    return jax.lax.fori_loop(0, plan.count, lambda i, carry: one_joint(plan.order[i], carry), (vel, impulse))
+    v, impulse = jax.lax.fori_loop(0, plan.count, lambda i, carry: one_joint(plan.order[i], carry),
+                                   (jnp.stack(vel), impulse))
+    return Vel(v[0], v[1], v[2]), impulse
 
 
 def project(jc: JointConstraints, fr: JointFrame, vel: Vel, bias_rate, plan: Schedule,

@@ -559,10 +559,13 @@ def test_large_batches_stepped_in_parts_equal_one_pass():
 def test_vmap_equals_separate_runs():
     """A batched step equals the single-scene step on every scene, at every step of a 120-step run.
 
-    Equality is to float32 rounding (1e-5 relative), not bitwise: XLA compiles the batched program
-    differently from the single one and may round a few operations differently (measured:
-    at most a few ulp per step). Contacts amplify such ulps chaotically over a long run, so
-    the check restarts each separate step from the batched state. Bitwise reproducibility of
+    Equality is to float32 rounding (3e-5 relative), not bitwise: XLA compiles the batched program
+    differently from the single one and may round a few operations differently, for example by
+    contracting a multiply and an add into one FMA in one program and not the other. A solver step
+    amplifies such ulps: the worst per step measured 5.6e-6 (one body's angle, once in 120 steps),
+    6.8e-6 with the joint projection's position part and 1.1e-5 with the contact sweeps on stacked
+    velocities; most steps differ by under 3e-6. Contacts amplify them chaotically over a long run,
+    so the check restarts each separate step from the batched state. Bitwise reproducibility of
     one program is test_same_inputs_give_bitwise_identical_trajectories.
     """
     batch, n_steps = 8, 120
@@ -587,7 +590,7 @@ def test_vmap_equals_separate_runs():
         batched = nxt
     print(f"\n[batching] {batch} scenes x {n_steps} steps: max |vmap step - single step| / (1 + |value|) {worst:.3e}")
     assert moved > 1e-3  # the scenes are not at rest
-    assert worst < 1e-5
+    assert worst < 3e-5
 
 
 def test_same_inputs_give_bitwise_identical_trajectories():

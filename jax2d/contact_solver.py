@@ -238,7 +238,7 @@ def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule)
     """Re-apply the accumulated impulses before solving.
 
     A sweep over the colours rather than one scatter-add: the sum on each body then
-    always runs in colour order, so batched and single runs agree bitwise.
+    always runs in colour order (the same for every batch width and every run of a program).
     """
 
     def apply_colour(both, c: _Block, var, points):

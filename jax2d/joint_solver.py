@@ -110,7 +110,7 @@ def schedule(jc: JointConstraints) -> Schedule:
 
 def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, plan: Schedule) -> Vel:
     """Re-apply every joint's accumulated impulses before solving, joint by joint (a fixed order
-    of additions, so batched and single runs agree bitwise)."""
+    of additions, the same for every batch width)."""
     if impulse.shape[0] == 0:
         return vel
 

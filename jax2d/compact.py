@@ -5,9 +5,9 @@ function. A scene's state has 39 leaves and its params 15, so one `jit(step)` ca
 batch 1 spent ~0.22 ms just crossing the boundary, as long as the step itself at s. An
 interactive loop (the server, a person playing) keeps its state packed instead:
 
-    state = jax.jit(pack)(scene)                       # once
-    params = jax.jit(pack)(SimParams())
-    stepper = jax.jit(step_compact, static_argnames="config")
+    state = jax2d.jit(pack)(scene)                       # once
+    params = jax2d.jit(pack)(SimParams())
+    stepper = jax2d.jit(step_compact, static_argnames="config")
     state = stepper(state, params, motor, thrust)       # 4 leaves in, 1 out
     scene = unpack_host(state)                          # numpy, one device-to-host copy
 

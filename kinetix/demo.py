@@ -43,7 +43,7 @@ def main(out_dir: str = "demo-output", seconds: float = 4.0, resolution: int = 1
         return (level, params), render_pixels(level, resolution)
 
     # One compiled program per size class: levels and params are arguments, not constants.
-    play = jax.jit(lambda level, params: jax.lax.scan(advance, (level, params), jnp.arange(n_frames))[1])
+    play = jax2d.jit(lambda level, params: jax.lax.scan(advance, (level, params), jnp.arange(n_frames))[1])
     for path in files:
         lf = load_level(path)
         frames = play(lf.level, lf.params.sim_params())

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jax2d
 from kinetix.level import Level
 
 
@@ -214,7 +215,7 @@ def _render(level: Level, resolution: int, world: tuple[float, float, float, flo
     return jnp.clip(jnp.moveaxis(image, 0, -1), 0.0, 1.0)
 
 
-_render_jit = jax.jit(_render, static_argnames=("resolution", "world"))
+_render_jit = jax2d.jit(_render, static_argnames=("resolution", "world"))
 
 
 def render_pixels(level: Level, resolution: int = 64, *, world=(0.0, 0.0, 5.0, 5.0)) -> jax.Array:

@@ -59,7 +59,7 @@ def _run_one(level: Level, params: jax2d.SimParams, key: jax.Array, steps: int, 
     return state, finite
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "config"))
+@functools.partial(jax2d.jit, static_argnames=("steps", "config"))
 def _simulate(levels, params, keys, steps, config):
     # One compiled program per (capacity, batch, steps, config).
     return jax.vmap(lambda level, p, key: _run_one(level, p, key, steps, config))(levels, params, keys)

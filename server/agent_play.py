@@ -77,6 +77,8 @@ def step_fn(policy, size) -> Callable:
     """The jitted observe-and-act function for this policy's signature and size class (built once)."""
     import jax
 
+    import jax2d
+
     observation = policy.observation or "entity"
     key = (policy.signature, _size_key(size), observation)
     with _LOCK:
@@ -88,7 +90,7 @@ def step_fn(policy, size) -> Callable:
     def observe_and_act(params, base_key, step, state):
         return policy.apply(params, jax.random.fold_in(base_key, step), env.observe(state))
 
-    fn = jax.jit(observe_and_act)
+    fn = jax2d.jit(observe_and_act)
     with _LOCK:
         return _FNS.setdefault(key, fn)
 

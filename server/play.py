@@ -83,15 +83,14 @@ class Stepper:
     """The jitted `transition` of a KinetixEnv for one size class and frame skip (no reset, no observation)."""
 
     def __init__(self, size, frame_skip: int):
-        import jax
-
+        import jax2d
         from kinetix.env import EnvConfig, make_env
         from kinetix.level import empty_level
 
         self.size, self.frame_skip = size, frame_skip
         self.env = make_env(EnvConfig(size=size, frame_skip=frame_skip), empty_level(size))
-        self._transition = jax.jit(self.env.transition)
-        self._initial = jax.jit(self._initial_state)
+        self._transition = jax2d.jit(self.env.transition)
+        self._initial = jax2d.jit(self._initial_state)
         self._batched: dict[int, object] = {}  # bucket -> compiled batched transition, once ready
         self._compiling: set[int] = set()
         self._failed: set[int] = set()  # compiles that failed are not retried (logged once)
@@ -173,6 +172,8 @@ class Stepper:
         import jax
         import jax.numpy as jnp
 
+        import jax2d
+
         transition = self.env.transition
 
         def many(states, actions, params):
@@ -185,7 +186,7 @@ class Stepper:
 
         try:
             t0 = time.perf_counter()
-            fn = jax.jit(many)
+            fn = jax2d.jit(many)
             # Compile with real shapes: a fresh episode of the empty level, as warm_up does.
             from kinetix.level import LevelFile, LevelParams, empty_level
 

@@ -19,6 +19,7 @@ SCRIPT = textwrap.dedent("""
     from kinetix.devices import request_cpu_devices
     request_cpu_devices(2)  # before JAX starts, as the CLI does
     import jax
+    import jax2d
     import jax.numpy as jnp
     import numpy as np
     from kinetix.jaxcache import enable_compilation_cache
@@ -37,9 +38,9 @@ SCRIPT = textwrap.dedent("""
     def rollout(states, motor, thrust):
         return jax.lax.scan(lambda s, a: (vstep(s, *a), None), states, (motor, thrust))[0]
 
-    single = jax.jit(rollout)(states, motor, thrust)
+    single = jax2d.jit(rollout)(states, motor, thrust)
     # As the benches and PPO split a batch: each device steps its own scenes (per_device).
-    split = jax.jit(per_device(rollout, batch, in_axes=(0, 1, 1)))(
+    split = jax2d.jit(per_device(rollout, batch, in_axes=(0, 1, 1)))(
         shard_batch(states, batch), *shard_batch((motor, thrust), batch, axis=1))
     print(json.dumps({
         "device_count": jax.device_count(),
@@ -80,8 +81,9 @@ CONFINE_SCRIPT = textwrap.dedent("""
     from kinetix.devices import confine_to_one_core, usable_cores
     confined = confine_to_one_core()  # before JAX starts, as the benches' loop child does
     import jax
+    import jax2d
     import jax.numpy as jnp
-    total = float(jax.jit(lambda x: (x * 2).sum())(jnp.arange(1000.0)))  # JAX's backend and threads running
+    total = float(jax2d.jit(lambda x: (x * 2).sum())(jnp.arange(1000.0)))  # JAX's backend and threads running
     threads = os.listdir("/proc/self/task")
     print(json.dumps({"confined": confined, "cores": usable_cores(), "total": total, "threads": len(threads),
                       "thread_cores": sorted({len(os.sched_getaffinity(int(t))) for t in threads})}))

@@ -3,7 +3,7 @@ recorder use). See docs/agents.md.
 
     from kinetix.agents import load_policy
     policy = load_policy("general", env)          # or "noop", "random", a checkpoint directory
-    action, value = jax.jit(policy.act)(key, obs)
+    action, value = jax2d.jit(policy.act)(key, obs)
 
 Importing this package is cheap; the modules (flax, optax) load on first use of a name.
 """

@@ -12,6 +12,7 @@ import time
 
 import jax
 
+import jax2d
 from kinetix.agents import curricula
 from kinetix.agents.ppo import TrainConfig, make_train
 from kinetix.agents.train import RANDOM_DENSE_REWARD
@@ -30,7 +31,7 @@ def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_c
     trainer = make_train(config, env, EnvParams(dense_reward_scale=RANDOM_DENSE_REWARD),
                          curricula.domain_randomisation(generator))
     start = time.perf_counter()
-    runner = jax.jit(trainer.init)(jax.random.key(0))
+    runner = jax2d.jit(trainer.init)(jax.random.key(0))
     runner, metrics = trainer.run(runner)
     jax.block_until_ready(metrics)
     first = time.perf_counter() - start

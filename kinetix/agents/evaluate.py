@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jax2d
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.policy import load_policy, required_observation
 from kinetix.agents.rollout import run_episodes
@@ -59,7 +60,7 @@ def evaluate(agent: str, levels: list[tuple[str, LevelFile]], attempts: int = AT
         steps = max(lf.params.max_timesteps for lf in files)
         act = lambda k, obs: policy.act(k, obs)[0]
         key, sub = jax.random.split(key)
-        run = jax.jit(lambda lv, p, k: run_episodes(env, p, act, lv, k, steps))
+        run = jax2d.jit(lambda lv, p, k: run_episodes(env, p, act, lv, k, steps))
         solved, total = run(jax.tree.map(repeat, stacked), jax.tree.map(repeat, params), sub)
         solved = np.asarray(solved).reshape(len(files), attempts)
         total = np.asarray(total).reshape(len(files), attempts)

@@ -6,7 +6,7 @@
           a path     a checkpoint directory written by `kinetix train`
 
 `Policy.act(key, obs) -> (action, value)` takes ONE observation of `env` (no batch axis) and is jittable
-(`jax.jit(policy.act)`, vmap it for batches). Checkpoint policies sample from the policy distribution unless
+(`jax2d.jit(policy.act)`, vmap it for batches). Checkpoint policies sample from the policy distribution unless
 `deterministic=True` (then the most likely action).
 """
 

@@ -1,7 +1,7 @@
 """PPO in the PureJaxRL style: the whole training loop is one jittable function.
 
     trainer = make_train(config, env, env_params, curriculum)
-    out = jax.jit(trainer.train)(key)              # everything: rollouts, GAE, minibatch epochs, logging
+    out = jax2d.jit(trainer.train)(key)              # everything: rollouts, GAE, minibatch epochs, logging
     # or in chunks, for progress bars, checkpoints and cancellation (what `kinetix train` does):
     runner = trainer.init(key)
     runner, metrics = trainer.run(runner)          # `updates_per_call` updates, jitted once
@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import optax
 from flax.training.train_state import TrainState
 
+import jax2d
 from kinetix.agents import distributions
 from kinetix.agents.curricula import Curriculum, Feedback
 from kinetix.agents.networks import ActorCritic
@@ -270,7 +271,7 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
     def run_chunk(runner: Runner, length: int):
         return jax.lax.scan(lambda r, _: update(r), runner, None, length=length)
 
-    run = jax.jit(lambda runner: run_chunk(runner, config.updates_per_call), donate_argnums=0)
+    run = jax2d.jit(lambda runner: run_chunk(runner, config.updates_per_call), donate_argnums=0)
 
     def train(key: jax.Array) -> dict:
         runner, metrics = run_chunk(init(key), config.num_updates)

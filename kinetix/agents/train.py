@@ -28,6 +28,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
+import jax2d
 from kinetix.agents import checkpoint as checkpoint_module
 from kinetix.agents import curricula
 from kinetix.agents.checkpoint import CheckpointError
@@ -129,7 +130,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
 
     trainer = make_train(config, env, env_params, factory(solve_rate_fn), init_params=init_params, shard=sharder)
     network_holder["network"] = trainer.network
-    runner = jax.jit(trainer.init)(jax.random.key(seed))
+    runner = jax2d.jit(trainer.init)(jax.random.key(seed))
     history: list[dict] = []
     start = time.perf_counter()
     stopped = False

@@ -148,6 +148,7 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
     import jax.numpy as jnp
     import numpy as np
 
+    import jax2d
     from jax2d import step
     from kinetix.devices import batch_devices, per_device, shard_batch
 
@@ -168,7 +169,7 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
     if cold:
         jax.clear_caches()
     start = time.perf_counter()
-    compiled = jax.jit(rollout).lower(scenes, params, motor, thrust).compile()
+    compiled = jax2d.jit(rollout).lower(scenes, params, motor, thrust).compile()
     compile_s = time.perf_counter() - start
 
     seconds, final, runs = timed_runs(lambda: compiled(scenes, params, motor, thrust))
@@ -196,6 +197,7 @@ def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool 
     import jax
     import numpy as np
 
+    import jax2d
     from jax2d import step, step_compact
     from jax2d.compact import pack, unpack_host
     from kinetix.devices import usable_cores
@@ -211,8 +213,8 @@ def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool 
 
     if cold:
         jax.clear_caches()
-    stepper = jax.jit(step_compact, static_argnames="config")
-    packed, packed_params = jax.jit(pack)(scene), jax.jit(pack)(params)
+    stepper = jax2d.jit(step_compact, static_argnames="config")
+    packed, packed_params = jax2d.jit(pack)(scene), jax2d.jit(pack)(params)
     start = time.perf_counter()
     state = jax.block_until_ready(stepper(packed, packed_params, motor[0], thrust[0], config=config))
     compile_s = time.perf_counter() - start
@@ -226,7 +228,7 @@ def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool 
         return 1000.0 * (time.perf_counter() - start) / calls, state
 
     latency_ms, state = loop(stepper, state, packed_params)
-    pytree_ms, _ = loop(jax.jit(step, static_argnames="config"), scene, params)
+    pytree_ms, _ = loop(jax2d.jit(step, static_argnames="config"), scene, params)
     return {
         "what": "engine",
         "size": workload.name,

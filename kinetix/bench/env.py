@@ -71,6 +71,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
     import jax
     import jax.numpy as jnp
 
+    import jax2d
     from kinetix.actions import sample_random_action
     from kinetix.devices import batch_devices, per_device, shard_batch
 
@@ -103,7 +104,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
     if cold:
         jax.clear_caches()
     start = time.perf_counter()
-    compiled = jax.jit(rollout).lower(keys, params).compile()
+    compiled = jax2d.jit(rollout).lower(keys, params).compile()
     compile_s = time.perf_counter() - start
 
     seconds, result, runs = timed_runs(lambda: compiled(keys, params))
@@ -134,6 +135,7 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
     import jax
     import numpy as np
 
+    import jax2d
     from jax2d.compact import pack, unpack_host
     from kinetix.actions import sample_random_action
     from kinetix.devices import usable_cores
@@ -147,7 +149,7 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
 
     if cold:
         jax.clear_caches()
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    reset, step = jax2d.jit(env.reset), jax2d.jit(env.step)
     start = time.perf_counter()
     obs, state = jax.block_until_ready(reset(keys[0], params))
     reset_compile_s = time.perf_counter() - start
@@ -170,8 +172,8 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
     # The packed loop (env.step_compact), the way a Python loop at batch 1 should call the env.
     if cold:
         jax.clear_caches()
-    packed_params = jax.jit(pack)(params)
-    reset_compact, step_compact = jax.jit(env.reset_compact), jax.jit(env.step_compact)
+    packed_params = jax2d.jit(pack)(params)
+    reset_compact, step_compact = jax2d.jit(env.reset_compact), jax2d.jit(env.step_compact)
     packed = jax.block_until_ready(reset_compact(keys[0], packed_params))
     start = time.perf_counter()
     packed = jax.block_until_ready(step_compact(keys[0], packed, actions[0], packed_params))
@@ -201,11 +203,12 @@ def measure_renderer(level_file, name: str, resolution: int, calls: int = 100, c
     import jax
     import jax.numpy as jnp
 
+    import jax2d
     from kinetix.render import render_pixels
 
     level = level_file.level
-    single = jax.jit(lambda lv: render_pixels(lv, resolution))
-    batched = jax.jit(jax.vmap(lambda lv: render_pixels(lv, resolution)))
+    single = jax2d.jit(lambda lv: render_pixels(lv, resolution))
+    batched = jax2d.jit(jax.vmap(lambda lv: render_pixels(lv, resolution)))
     stack = jax.tree.map(lambda x: jnp.stack([x] * PIXEL_BATCH), level)
 
     if cold:

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jax2d
 from kinetix.recording.errors import RecordingError
 
 
@@ -70,7 +71,7 @@ def train_bc(dataset: str | Path, out: str | Path, *, epochs: int = 20, batch_si
                             else mode(outputs, action_type) == a)
         return -jnp.mean(log_prob(outputs, a, action_type)), accuracy
 
-    @jax.jit
+    @jax2d.jit
     def update(p, s, o, a):
         (loss, accuracy), grads = jax.value_and_grad(loss_fn, has_aux=True)(p, o, a)
         updates, s = optimiser.update(grads, s, p)

@@ -20,9 +20,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-import jax
 import numpy as np
 
+import jax2d
 from kinetix.level import LevelError, size_class
 from kinetix.recording.errors import RecordingError
 from kinetix.recording.reader import Recording, read_recording
@@ -35,7 +35,7 @@ MANIFEST_VERSION = 1
 def _observe(kind: str, resolution: int):
     from kinetix.observations import observe
 
-    return jax.jit(lambda level: observe(level, kind, resolution))
+    return jax2d.jit(lambda level: observe(level, kind, resolution))
 
 
 def find_recordings(inputs: list[str]) -> list[Path]:

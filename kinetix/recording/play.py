@@ -10,6 +10,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+import jax2d
 from kinetix.level import LevelError, LevelFile
 from kinetix.recording.errors import RecordingError
 from kinetix.recording.replay import step_function
@@ -35,14 +36,14 @@ def _policy(spec: str, env):
         action = noop_action(env.config)
         return lambda key, obs: action
     if spec == "random":
-        return jax.jit(lambda key, obs: sample_random_action(key, env.config))
+        return jax2d.jit(lambda key, obs: sample_random_action(key, env.config))
     try:
         from kinetix.agents import load_policy
     except ImportError as error:
         raise RecordingError(f"agent {spec!r} needs kinetix.agents, which is not available ({error}); "
                              "use --agent noop or --agent random") from None
     policy = load_policy(spec, env)
-    act = jax.jit(policy.act)
+    act = jax2d.jit(policy.act)
     return lambda key, obs: act(key, obs)[0]
 
 
@@ -73,7 +74,7 @@ def play_episode(agent: str, level_file: LevelFile, out: str | Path, *, seed: in
     act = _policy(agent, env)
     step = step_function(config)
     # noop and random ignore the observation: skip computing (and compiling) it
-    observe = (lambda s: None) if agent in ("noop", "random") else jax.jit(env.observe)
+    observe = (lambda s: None) if agent in ("noop", "random") else jax2d.jit(env.observe)
     key = jax.random.PRNGKey(seed)
     reset_key, key = jax.random.split(key)
     state = env.initial_state(reset_key, params)

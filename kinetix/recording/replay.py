@@ -14,6 +14,7 @@ from collections.abc import Iterator
 import jax
 import numpy as np
 
+import jax2d
 from kinetix.recording.errors import RecordingError
 from kinetix.recording.reader import Recording
 
@@ -25,7 +26,7 @@ def step_function(config):
     from kinetix.env import KinetixEnv
 
     env = KinetixEnv(config, lambda key: None)  # transition never calls the reset function
-    return jax.jit(env.transition)
+    return jax2d.jit(env.transition)
 
 
 @functools.cache
@@ -39,7 +40,7 @@ def batched_step_function(config, batch: int):
     from kinetix.env import KinetixEnv
 
     env = KinetixEnv(config, lambda key: None)
-    many = jax.jit(jax.vmap(env.transition))
+    many = jax2d.jit(jax.vmap(env.transition))
 
     def step(state, action, params):
         copies = lambda x: jnp.stack([x] * batch)  # noqa: E731

@@ -12,6 +12,7 @@ import json
 
 import jax
 
+import jax2d
 from kinetix.formats import LevelSpec, build, describe, kinetix_json, ours, smallest_size
 from kinetix.level import LevelError, LevelFile, SizeClass, empty_level, size_class
 from kinetix.levels import detect_format, dumps
@@ -71,13 +72,13 @@ def new_level(size: str | SizeClass) -> LevelSpec:
 @functools.cache
 def _sampler(size: SizeClass):
     from kinetix.generate import sample_level
-    return jax.jit(lambda key: sample_level(key, size))
+    return jax2d.jit(lambda key: sample_level(key, size))
 
 
 @functools.cache
 def _mutator(n: int):
     from kinetix.mutate import mutate
-    return jax.jit(lambda key, level: mutate(key, level, n))
+    return jax2d.jit(lambda key, level: mutate(key, level, n))
 
 
 def warm_up(size: str | SizeClass = "m") -> None:

@@ -19,7 +19,7 @@ import jax2d
 from jax2d import scene
 from jax2d.geometry import regular_polygon_vertices
 
-STEP = jax.jit(jax2d.step, static_argnames="config")
+STEP = jax2d.jit(jax2d.step, static_argnames="config")
 DEFAULT_CONFIG = jax2d.SolverConfig()
 CHUNK = 60  # steps per compiled scan: rollouts of any multiple of this reuse one compilation
 
@@ -32,7 +32,7 @@ def kinematics(state: jax2d.SimState) -> dict[str, jax.Array]:
     return dict(position=b.position, angle=b.angle, velocity=b.velocity, angular_velocity=b.angular_velocity)
 
 
-@functools.partial(jax.jit, static_argnames=("record", "config"))
+@functools.partial(jax2d.jit, static_argnames=("record", "config"))
 def _scan(state, params, motor_actions, thruster_actions, record, config):
     def body(s, actions):
         s = STEP(s, params, actions[0], actions[1], config=config)

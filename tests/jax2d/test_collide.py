@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jax2d
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 
 SPEC = 0.04  # speculative distance used throughout
@@ -378,9 +379,9 @@ def random_pairs(rng: np.random.Generator, count: int, coincident: float, size: 
 
 
 BATCHED = {
-    "polygons": jax.jit(jax.vmap(collide_polygons, in_axes=(0, 0, 0, 0, 0, 0, 0, 0, None))),
-    "polygon_circle": jax.jit(jax.vmap(collide_polygon_circle, in_axes=(0, 0, 0, 0, 0, 0, None))),
-    "circles": jax.jit(jax.vmap(collide_circles, in_axes=(0, 0, 0, 0, None))),
+    "polygons": jax2d.jit(jax.vmap(collide_polygons, in_axes=(0, 0, 0, 0, 0, 0, 0, 0, None))),
+    "polygon_circle": jax2d.jit(jax.vmap(collide_polygon_circle, in_axes=(0, 0, 0, 0, 0, 0, None))),
+    "circles": jax2d.jit(jax.vmap(collide_circles, in_axes=(0, 0, 0, 0, None))),
 }
 
 

@@ -37,10 +37,10 @@ def test_pack_and_unpack_give_back_every_leaf_bitwise():
     tree = {"f": jnp.array([1.5, -0.0, jnp.inf, jnp.nan], jnp.float32), "i": jnp.array([[-7, 2**31 - 1]], jnp.int32),
             "u": jnp.array([0, 2**32 - 1], jnp.uint32), "b": jnp.array([True, False, True]), "scalar": jnp.float32(3.0),
             "empty": jnp.zeros((0, 2), jnp.float32)}
-    packed = jax.jit(pack)(tree)
+    packed = jax2d.jit(pack)(tree)
     assert isinstance(packed, Compact) and packed.buffer.shape == (4 + 2 + 2 + 3 + 1,)
     assert len(jax.tree.leaves(packed)) == 1
-    back_device, back_host = jax.jit(unpack)(packed), unpack_host(packed)
+    back_device, back_host = jax2d.jit(unpack)(packed), unpack_host(packed)
     for back in (back_device, back_host):
         np.testing.assert_array_equal(np.asarray(back["f"]).view(np.uint32), np.asarray(tree["f"]).view(np.uint32))
         for name in ("i", "u", "b", "scalar", "empty"):
@@ -62,7 +62,7 @@ def test_update_writes_the_changed_leaves_and_equals_a_fresh_pack():
         new = dataclasses.replace(old, bodies=dataclasses.replace(old.bodies, position=old.bodies.position + 1.0))
         return update(packed, old, new), pack(new)
 
-    updated, fresh = jax.jit(moved)(jax.jit(pack)(state))
+    updated, fresh = jax2d.jit(moved)(jax2d.jit(pack)(state))
     np.testing.assert_array_equal(np.asarray(updated.buffer), np.asarray(fresh.buffer))
     np.testing.assert_allclose(unpack_host(updated).bodies.position, np.asarray(state.bodies.position) + 1.0)
     with pytest.raises(ValueError, match="layout"):
@@ -71,8 +71,8 @@ def test_update_writes_the_changed_leaves_and_equals_a_fresh_pack():
 
 def test_packed_step_equals_the_pytree_step_bitwise():
     state, params = _scene(), jax2d.SimParams()
-    stepper = jax.jit(jax2d.step_compact, static_argnames="config")
-    packed, packed_params = jax.jit(pack)(state), jax.jit(pack)(jax.tree.map(jnp.float32, params))
+    stepper = jax2d.jit(jax2d.step_compact, static_argnames="config")
+    packed, packed_params = jax2d.jit(pack)(state), jax2d.jit(pack)(jax.tree.map(jnp.float32, params))
     rng = np.random.default_rng(0)
     for _ in range(30):
         motor = rng.uniform(-1, 1, (1,)).astype(np.float32)

@@ -429,7 +429,7 @@ def _finite(state: jax2d.SimState) -> jax.Array:
                               if jnp.issubdtype(x.dtype, jnp.floating)]))
 
 
-@jax.jit
+@jax2d.jit
 def _random_run(states: jax2d.SimState, params: jax2d.SimParams, key: jax.Array):
     """Step a batch RANDOM_STEPS times with fresh random actions each step.
 
@@ -535,7 +535,7 @@ def test_large_batches_stepped_in_parts_equal_one_pass():
     motors, thrusts = random_actions(np.random.default_rng(5), 20, (8,))
     whole, parts = jax2d.SolverConfig(), jax2d.SolverConfig(chunk=2)
 
-    @functools.partial(jax.jit, static_argnames="config")
+    @functools.partial(jax2d.jit, static_argnames="config")
     def one_step(states, motors, thrusts, config):
         return jax2d.step_batch(states, PARAMS, motors, thrusts, config=config)
 
@@ -572,7 +572,7 @@ def test_vmap_equals_separate_runs():
     states = small_random_scenes(batch)
     motors, thrusts = random_actions(np.random.default_rng(1), n_steps, (batch,))
     batched = scenes.stack(states)
-    vstep = jax.jit(jax.vmap(lambda s, m, t: scenes.STEP(s, PARAMS, m, t)))
+    vstep = jax2d.jit(jax.vmap(lambda s, m, t: scenes.STEP(s, PARAMS, m, t)))
     worst = 0.0
     moved = 0.0
     for t in range(n_steps):

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jax2d
 from jax2d import scene
 from kinetix.actions import (
     ACTION_TYPES,
@@ -49,7 +50,7 @@ CONTINUOUS_TABLE = [
 
 
 def check(action, action_type, motor, thrust):
-    got_motor, got_thrust = jax.jit(binding_values, static_argnums=1)(action, action_type)
+    got_motor, got_thrust = jax2d.jit(binding_values, static_argnums=1)(action, action_type)
     assert got_motor.shape == (4,) and got_thrust.shape == (2,)
     assert got_motor.dtype == got_thrust.dtype == jnp.float32
     np.testing.assert_array_equal(got_motor, np.asarray(motor, np.float32), err_msg=f"{action_type} {action}")
@@ -128,7 +129,7 @@ def bound_level():
 def test_joints_sharing_a_binding_get_the_same_action(bound_level, action_type):
     bindings = np.asarray(bound_level.motor_bindings)
     auto = np.asarray(bound_level.motor_auto)
-    @jax.jit
+    @jax2d.jit
     def one(key):
         action = sample_random_action(key, action_type)
         return binding_values(action, action_type), level_actions(bound_level, action, action_type)

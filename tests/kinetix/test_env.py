@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jax2d
 from jax2d import scene
 from kinetix.actions import noop_action, sample_random_action
 from kinetix.env import EnvConfig, EnvParams, EnvState, StepOutput, make_env
@@ -80,24 +81,24 @@ def env():
 
 @pytest.fixture(scope="module")
 def step(env):
-    return jax.jit(env.step)
+    return jax2d.jit(env.step)
 
 
 @pytest.fixture(scope="module")
 def step_no_reset(env):
-    return jax.jit(env.step_no_reset)
+    return jax2d.jit(env.step_no_reset)
 
 
 @pytest.fixture(scope="module")
 def step3_no_reset():
     """Another config: flat observations, discrete actions, frame skip 3."""
     env3 = make_env(EnvConfig("s", observation="flat", action="discrete", frame_skip=3), resting_ball())
-    return jax.jit(env3.step_no_reset)
+    return jax2d.jit(env3.step_no_reset)
 
 
 @pytest.fixture(scope="module")
 def reset(env):
-    return jax.jit(env.reset)
+    return jax2d.jit(env.reset)
 
 
 NOOP = noop_action("multi_discrete")
@@ -333,9 +334,9 @@ def test_public_levels_batched_random_rollout(public_levels):
     env = LogWrapper(make_env(EnvConfig("s"), reset_list(public_levels)))
     params = EnvParams(max_timesteps=20, dense_reward_scale=0.1)
     n = 8
-    reset = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
-    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
-    sample = jax.jit(jax.vmap(lambda k: sample_random_action(k, "multi_discrete")))
+    reset = jax2d.jit(jax.vmap(env.reset, in_axes=(0, None)))
+    step = jax2d.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    sample = jax2d.jit(jax.vmap(lambda k: sample_random_action(k, "multi_discrete")))
 
     def rollout(seed):
         key = jax.random.PRNGKey(seed)
@@ -375,8 +376,8 @@ def test_packed_step_equals_step_bitwise_through_an_auto_reset(env, step, reset)
     from jax2d.compact import layout_of, pack, unpack_host
 
     params = EnvParams()
-    packed_params = jax.jit(pack)(params)
-    step_compact, reset_compact = jax.jit(env.step_compact), jax.jit(env.reset_compact)
+    packed_params = jax2d.jit(pack)(params)
+    step_compact, reset_compact = jax2d.jit(env.step_compact), jax2d.jit(env.reset_compact)
     obs, state = reset(KEY, params)
     packed = reset_compact(KEY, packed_params)
     # reset and step give one layout, so the packed step compiles once for both.
@@ -397,7 +398,7 @@ def test_packed_step_equals_step_bitwise_through_an_auto_reset(env, step, reset)
 def test_packed_step_rejects_a_buffer_that_is_not_a_packed_step_output(env):
     from jax2d.compact import pack
 
-    params = jax.jit(pack)(EnvParams())
+    params = jax2d.jit(pack)(EnvParams())
     obs, state = env.reset(KEY, EnvParams())
     with pytest.raises(ValueError, match="reset_compact or step_compact"):
         env.step_compact(KEY, pack((obs, state)), NOOP, params)  # (obs, state) alone: no reward, flags, info

@@ -221,13 +221,13 @@ def assert_all_valid(levels, count, what):
 def batches():
     """COUNT generated levels per size, from one compiled vmapped sampler per size."""
     keys = jax.random.split(jax.random.key(2024), COUNT)
-    return {name: jax.jit(jax.vmap(lambda k, name=name: sample_level(k, name)))(keys) for name in SIZE_NAMES}
+    return {name: jax2d.jit(jax.vmap(lambda k, name=name: sample_level(k, name)))(keys) for name in SIZE_NAMES}
 
 
 @pytest.fixture(scope="module")
 def trivial_flags(batches):
     """Per size, which generated levels the no-op policy solves (one compiled vmapped rollout per size)."""
-    check = jax.jit(jax.vmap(lambda level: is_trivial(level, SIM_PARAMS)))
+    check = jax2d.jit(jax.vmap(lambda level: is_trivial(level, SIM_PARAMS)))
     return {name: np.asarray(check(levels)) for name, levels in batches.items()}
 
 
@@ -238,7 +238,7 @@ def test_same_key_same_level_wherever_it_is_in_the_batch(batches):
     """A level depends on its key only: the same keys in another order give the same levels, bitwise."""
     keys = jax.random.split(jax.random.key(2024), COUNT)
     order = np.roll(np.arange(COUNT), 7)
-    again = jax.jit(jax.vmap(lambda k: sample_level(k, "m")))(keys[order])  # same program as the fixture's
+    again = jax2d.jit(jax.vmap(lambda k: sample_level(k, "m")))(keys[order])  # same program as the fixture's
     for x, y in zip(jax.tree.leaves(batches["m"]), jax.tree.leaves(again), strict=True):
         assert np.asarray(x)[order].tobytes() == np.asarray(y).tobytes()
     # Different keys give different levels.
@@ -345,7 +345,7 @@ def test_generated_levels_simulate_sanely(batches):
         (_, finite, low, high), separation = jax.lax.scan(one, start, jax.random.split(key, 300))
         return finite, low, high, separation[0]
 
-    run = jax.jit(jax.vmap(rollout))
+    run = jax2d.jit(jax.vmap(rollout))
     keys = jax.random.split(jax.random.key(9), 64)
     for name, levels in batches.items():
         first = jax.tree.map(lambda x: x[:64], levels)
@@ -422,7 +422,7 @@ CHECK_BATCH = 8
 @pytest.fixture(scope="module")
 def check_m():
     """is_trivial over a batch of CHECK_BATCH size-m levels (one compiled program for the tests below)."""
-    check = jax.jit(jax.vmap(lambda level: is_trivial(level, SIM_PARAMS)))
+    check = jax2d.jit(jax.vmap(lambda level: is_trivial(level, SIM_PARAMS)))
 
     def run(levels):
         batch = jax.tree.map(lambda *xs: jnp.stack(xs), *levels) if isinstance(levels, list) else levels
@@ -451,7 +451,7 @@ def test_nontrivial_sampler_keeps_the_first_nontrivial_candidate(check_m):
     candidates some keys find a non-trivial one (returned, flag True), others do not (a trivial one, False)."""
     easy = GeneratorParams(connected_chance=0.0, free_chance=0.0, goal_spread=-2.0, fixed_chance=0.0)
     keys = jax.random.split(jax.random.key(31), CHECK_BATCH)
-    levels, found = jax.jit(jax.vmap(lambda k: sample_nontrivial_level(k, "m", easy, candidates=2)))(keys)
+    levels, found = jax2d.jit(jax.vmap(lambda k: sample_nontrivial_level(k, "m", easy, candidates=2)))(keys)
     found = np.asarray(found)
     assert found.any() and not found.all()
     np.testing.assert_array_equal(check_m(levels), ~found)
@@ -473,7 +473,7 @@ def changed(before, after, i):
 
 @pytest.mark.parametrize("mutator", MUTATORS, ids=lambda m: m.__name__)
 def test_each_mutator_keeps_levels_valid(mutation_start, mutator):
-    out = jax.jit(jax.vmap(lambda k, level: mutator(k, level, "m")))(jax.random.split(jax.random.key(8), 50),
+    out = jax2d.jit(jax.vmap(lambda k, level: mutator(k, level, "m")))(jax.random.split(jax.random.key(8), 50),
                                                                        mutation_start)
     assert_all_valid(out, 50, f"levels after {mutator.__name__}")
     edited = [i for i in range(50) if changed(mutation_start, out, i)]
@@ -514,7 +514,7 @@ def test_each_mutator_keeps_levels_valid(mutation_start, mutator):
 @pytest.mark.parametrize("name", SIZE_NAMES)
 def test_mutation_chains_keep_levels_valid(batches, name):
     """50 chains of 10 random mutations each (applied two at a time); every other level is checked."""
-    step = jax.jit(jax.vmap(lambda k, level: mutate(k, level, n=2)))
+    step = jax2d.jit(jax.vmap(lambda k, level: mutate(k, level, n=2)))
     levels = jax.tree.map(lambda x: x[:50], batches[name])
     edited = 0
     for round_ in range(5):

@@ -27,7 +27,7 @@ MAX_GAP = 0.05  # m, at any step
 MAX_GAP_P99 = 0.01  # m, the 99th percentile over the run of a level's largest gap
 
 
-@jax.jit
+@jax2d.jit
 def _run(states: jax2d.SimState, key: jax.Array):
     """Per level: largest joint gap at each step (STEPS, B), fastest body (B,), all floats finite (B,)."""
     batch, joints, thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
@@ -54,7 +54,7 @@ def test_joints_stay_attached_in_public_and_generated_levels(shared_dir):
     assert len(files) == 60, f"expected the 60 shared Kinetix levels, found {len(files)}"
     sims = [load_level(path, "l").level.sim for path in files]
     names = [f"{path.parent.name}/{path.stem}" for path in files]
-    generate = jax.jit(lambda key: sample_level(key, "l"))
+    generate = jax2d.jit(lambda key: sample_level(key, "l"))
     sims += [generate(jax.random.key(seed)).sim for seed in range(GENERATED)]
     names += [f"generated seed {seed}" for seed in range(GENERATED)]
     assert sum(int(np.sum(np.asarray(s.joints.active))) for s in sims) > 100, "too few joints to say anything"

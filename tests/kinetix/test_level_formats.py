@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jax2d
 from jax2d import scene
 from kinetix.bindings import expand_actions
 from kinetix.formats import MAX_MAGNITUDE, index_keyed_list, ours
@@ -662,7 +663,7 @@ def test_expand_actions_follows_bindings_auto_and_activity(robot):
     level = robot.level
     motor_values = jnp.array([0.1, -0.2, 0.3, -0.4])
     thruster_values = jnp.array([0.25, 0.75])
-    motor, thrust = jax.jit(expand_actions)(level, motor_values, thruster_values)
+    motor, thrust = jax2d.jit(expand_actions)(level, motor_values, thruster_values)
     bindings, auto = np.asarray(level.motor_bindings), np.asarray(level.motor_auto)
     active = np.asarray(level.sim.joints.active)
     expected = np.where(active, np.where(auto, 1.0, np.asarray(motor_values)[bindings]), 0.0)

@@ -2,11 +2,11 @@
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jax2d
 from jax2d import scene
 from jax2d.state import COLLIDE_ALL, COLLIDE_NORMAL
 from kinetix.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, SIZES, empty_level, make_level
@@ -22,8 +22,8 @@ from kinetix.observations import (
     polygon_features,
 )
 
-entity = jax.jit(entity_observation)
-flat = jax.jit(flat_observation)
+entity = jax2d.jit(entity_observation)
+flat = jax2d.jit(flat_observation)
 
 
 def set_body(level, index, **fields):
@@ -85,7 +85,7 @@ def test_pixels(size):
         from kinetix.render import render_pixels  # noqa: F401
     except ImportError as error:
         pytest.skip(f"kinetix.render.render_pixels is not available yet ({error}); the pixel renderer is separate")
-    image = jax.jit(lambda lv: observe(lv, "pixels", 32))(empty_level(size))
+    image = jax2d.jit(lambda lv: observe(lv, "pixels", 32))(empty_level(size))
     assert image.shape == (32, 32, 3) and image.dtype == jnp.float32
     assert float(image.min()) >= 0.0 and float(image.max()) <= 1.0
 

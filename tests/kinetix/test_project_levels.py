@@ -295,7 +295,7 @@ def simulate_size_class(size: SizeClass, names: tuple[str, ...]) -> dict[tuple[s
     params = stack([files[k].params.sim_params() for k, _, _ in runs])
     index = jnp.array([i for _, _, i in runs], jnp.int32)
     keys = jax.random.split(jax.random.key(0), len(runs))
-    batch = jax.jit(jax.vmap(lambda lv, pa, i, key: run_episode(lv, pa, policies, i, key)))
+    batch = jax2d.jit(jax.vmap(lambda lv, pa, i, key: run_episode(lv, pa, policies, i, key)))
     out = jax.tree.map(np.asarray, batch(levels, params, index, keys))
     return {(names[k], policy): {field: values[r] for field, values in out.items()}
             for r, (k, policy, _) in enumerate(runs)}

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import jax2d
 from jax2d import scene
 from kinetix.level import ROLE_BLUE, ROLE_GREEN, empty_level, make_level
 from kinetix.levels import load_level
@@ -220,7 +221,7 @@ def test_vmap_and_jit_equal_individual_renders():
     levels.append(joint_level(3)[0])
     singles = np.stack([render_pixels(level, 48) for level in levels])
     batch = jax.tree.map(lambda *xs: jnp.stack(xs), *levels)
-    batched = jax.jit(jax.vmap(lambda level: render_pixels(level, 48)))(batch)
+    batched = jax2d.jit(jax.vmap(lambda level: render_pixels(level, 48)))(batch)
     np.testing.assert_allclose(batched, singles, atol=1e-5)
     assert len({to_uint8(s).tobytes() for s in singles}) == len(levels)
 

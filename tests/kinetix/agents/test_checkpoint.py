@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jax2d
 from kinetix.agents import checkpoint
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.policy import load_policy
@@ -47,7 +48,7 @@ def test_round_trip_is_exact(trained, env):
 def test_policy_from_checkpoint_matches_the_network(trained, env):
     path, params, _, network, obs = trained
     policy = load_policy(str(path), env, deterministic=True)
-    action, value = jax.jit(policy.act)(jax.random.key(0), obs)
+    action, value = jax2d.jit(policy.act)(jax.random.key(0), obs)
     outputs, expected_value = network.apply({"params": params}, jax.tree.map(lambda x: x[None], obs))
     np.testing.assert_allclose(value, expected_value[0], rtol=1e-6)
     assert env.action_space.contains(np.asarray(action))
@@ -56,7 +57,7 @@ def test_policy_from_checkpoint_matches_the_network(trained, env):
 def test_apply_takes_the_parameters_as_an_argument_and_signatures_group_equal_programs(trained, env):
     path, params, _, network, obs = trained
     policy = load_policy(str(path), env, deterministic=True)
-    apply = jax.jit(policy.apply)
+    apply = jax2d.jit(policy.apply)
     action, value = apply(policy.params, jax.random.key(0), obs)
     np.testing.assert_array_equal(action, policy.act(jax.random.key(0), obs)[0])
     # Other parameters through the same compiled function give that network's value.
@@ -72,10 +73,10 @@ def test_apply_takes_the_parameters_as_an_argument_and_signatures_group_equal_pr
 def test_noop_and_random_policies(env):
     obs, _ = env.reset(jax.random.key(0))
     noop = load_policy("noop", env)
-    action, value = jax.jit(noop.act)(jax.random.key(0), obs)
+    action, value = jax2d.jit(noop.act)(jax.random.key(0), obs)
     np.testing.assert_array_equal(action, np.zeros(6))
     assert float(value) == 0.0
-    rand = jax.jit(load_policy("random", env).act)
+    rand = jax2d.jit(load_policy("random", env).act)
     actions = np.stack([np.asarray(rand(jax.random.key(i), obs)[0]) for i in range(20)])
     assert all(env.action_space.contains(a) for a in actions)
     assert len({tuple(a) for a in actions}) > 1

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jax2d
 from kinetix.agents import curricula
 from kinetix.agents.curricula import CurriculumConfig, Feedback
 from kinetix.generate import sample_level
@@ -14,14 +15,14 @@ def generator(key):
     return sample_level(key, "s")
 
 
-@jax.jit
+@jax2d.jit
 def generate(keys):
     return jax.vmap(generator)(keys)
 
 
 def jitted(curriculum):
     """(init, sample, update) jitted: the generator is far too slow op by op."""
-    return (jax.jit(curriculum.init), jax.jit(curriculum.sample, static_argnums=2), jax.jit(curriculum.update))
+    return (jax2d.jit(curriculum.init), jax2d.jit(curriculum.sample, static_argnums=2), jax2d.jit(curriculum.update))
 
 
 def gravity_tag(levels):

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jax2d
 from kinetix.agents.policy import GENERAL_DIR, load_policy
 from kinetix.env import EnvConfig, make_env
 from kinetix.level import empty_level
@@ -26,5 +27,5 @@ def test_general_agent_acts_on_every_size():
     for size in ("s", "m", "l"):
         env = make_env(EnvConfig(size), empty_level(size))
         obs, _ = env.reset(jax.random.key(0))
-        action, value = jax.jit(load_policy("general", env).act)(jax.random.key(1), obs)
+        action, value = jax2d.jit(load_policy("general", env).act)(jax.random.key(1), obs)
         assert env.action_space.contains(np.asarray(action)) and bool(jnp.isfinite(value))

@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[3]
 SCRIPT = textwrap.dedent("""
     import json
     import jax
+    import jax2d
     import numpy as np
     from kinetix.jaxcache import enable_compilation_cache
     enable_compilation_cache()
@@ -35,8 +36,8 @@ SCRIPT = textwrap.dedent("""
     results = {}
     for name, shard in (("single", None), ("sharded", batch_sharder(local_mesh(), config.num_envs))):
         trainer = make_train(config, env, params, curricula.domain_randomisation(generator), shard=shard)
-        runner = jax.jit(trainer.init)(jax.random.key(0))
-        runner, metrics = jax.jit(trainer.update)(runner)
+        runner = jax2d.jit(trainer.init)(jax.random.key(0))
+        runner, metrics = jax2d.jit(trainer.update)(runner)
         devices = len(runner.env_state.timestep.sharding.device_set)
         leaves = [np.asarray(x).tolist() for x in jax.tree.leaves(runner.train_state.params)]
         results[name] = {"devices": devices, "params": leaves, "episodes": float(metrics["episodes"]),

@@ -19,6 +19,7 @@ from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+import jax2d
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.levels import load_level
 from kinetix.recording import Recorder, RecordingError, read_recording, verify
@@ -108,7 +109,7 @@ def test_session_style_recording_with_step_no_reset(tmp_path):
     config = EnvConfig(size=level.size, frame_skip=level.params.frame_skip)
     env = make_env(config, level)
     params = EnvParams.from_level_params(level.params)
-    step = jax.jit(env.step_no_reset)
+    step = jax2d.jit(env.step_no_reset)
     obs, state = env.reset(jax.random.PRNGKey(0), params)
     path = tmp_path / "session.mcap"
     with Recorder(path, level, metadata={"player": "human", "name": "test"}) as recorder:
@@ -389,7 +390,7 @@ def test_batched_steps_replay_bitwise_with_the_batched_program(tmp_path):
     config = EnvConfig(size=level.size, frame_skip=level.params.frame_skip)
     env = make_env(config, level)
     params = EnvParams.from_level_params(level.params)
-    many = jax.jit(jax.vmap(env.transition))  # as server.play.Stepper's batched step: 8 lanes, other plays in them
+    many = jax2d.jit(jax.vmap(env.transition))  # as server.play.Stepper's batched step: 8 lanes, other plays in them
     state = env.initial_state(jax.random.PRNGKey(0), params)
     other = state
     stack = lambda *xs: jnp.stack(xs)  # noqa: E731
@@ -413,7 +414,7 @@ def test_batched_steps_replay_bitwise_with_the_batched_program(tmp_path):
     # Labelled as single steps, the recording verifies exactly when the single-step program, chained from the
     # start as verify does, gives the recorded bodies and rewards bitwise (the batched and the single program
     # may round alike, or not, depending on the scene).
-    single = jax.jit(env.transition)
+    single = jax2d.jit(env.transition)
     state, alike = env.initial_state(jax.random.PRNGKey(0), params), True
     for action, reward, _, _, recorded in steps:
         state, replayed_reward, _, _, _ = single(state, action, params)

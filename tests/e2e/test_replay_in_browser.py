@@ -55,7 +55,8 @@ def test_watch_best_run_opens_the_replay_and_its_frames_change(browser, app):
         assert other.locator("button.best-run").is_disabled(), "levels without a recorded solve: disabled"
 
         button.click()
-        gallery.wait_for_url(f"**/?level={level_id}&mode=replay*")  # keys.js adds &websocket=
+        # keys.js adds &websocket=; 60 s as below: the server may still be compiling on a cold cache
+        gallery.wait_for_url(f"**/?level={level_id}&mode=replay*", timeout=60_000)
         gallery.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
         session = app.manager.session_by_nonce(gallery.get_attribute("#kinetix-session", "data-nonce"))
         _wait(lambda: session.mode == "replay" and session.replay is not None)

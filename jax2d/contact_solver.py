@@ -117,16 +117,19 @@ _ROW = {name: i for i, name in enumerate(CONST_ROWS)}
 
 
 def pack_rows(layout: ContactLayout, rows) -> jax.Array:
-    """A list of (S, *batch) arrays -> (C, F, K, *batch)."""
+    """A list of (S, *batch) arrays, slot order -> (C, F, K, *batch), solve order."""
     C, K = layout.num_colours, layout.per_colour
     stacked = jnp.stack(rows).astype(jnp.float32)
+    if layout.walls_repeat:
+        stacked = stacked[:, layout.solve_slots]
     return jnp.swapaxes(stacked.reshape((len(rows), C, K) + stacked.shape[2:]), 0, 1)
 
 
-def unpack_rows(packed) -> jax.Array:
-    """(C, F, K, *batch) -> (F, S, *batch)."""
+def unpack_rows(layout: ContactLayout, packed) -> jax.Array:
+    """(C, F, K, *batch), solve order -> (F, S, *batch), slot order."""
     C, F, K = packed.shape[:3]
-    return jnp.swapaxes(packed, 0, 1).reshape((F, C * K) + packed.shape[3:])
+    rows = jnp.swapaxes(packed, 0, 1).reshape((F, C * K) + packed.shape[3:])
+    return rows[:, np.argsort(layout.solve_slots)] if layout.walls_repeat else rows
 
 
 def pack_constraints(layout: ContactLayout, cc: ContactConstraints) -> jax.Array:
@@ -140,8 +143,8 @@ def pack_impulses(layout: ContactLayout, imp: ContactImpulses) -> jax.Array:
     return pack_rows(layout, [x[:, k] for x in imp for k in range(2)])
 
 
-def unpack_impulses(packed) -> ContactImpulses:
-    rows = unpack_rows(packed)
+def unpack_impulses(layout: ContactLayout, packed) -> ContactImpulses:
+    rows = unpack_rows(layout, packed)
     return ContactImpulses(*(jnp.stack([rows[i], rows[i + 1]], axis=1) for i in range(0, 6, 2)))
 
 
@@ -199,8 +202,8 @@ def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var, plan: Sche
     colours keep the first rows of their var block, which is what solving them would give.
     Returns the velocities and the (C, F_out, K, *batch) new var blocks.
     """
-    C, K = layout.num_colours, layout.per_colour
-    sides = jnp.asarray(np.concatenate([layout.slot_a.reshape(C, K), layout.slot_b.reshape(C, K)], axis=1))
+    K = layout.per_colour
+    sides = jnp.asarray(layout.solve_sides)
     stacked = jnp.stack(vel)  # (3, M, *batch)
     rows = jax.eval_shape(lambda: solve_colour(stacked[:, :2 * K], _Block(const[0]), var[0], 2)[1]).shape[0]
 
@@ -209,8 +212,9 @@ def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var, plan: Sche
         c = plan.order[i]
         index = sides[c]
         both, new = solve_colour(v[:, index], _Block(const[c]), var[c], plan.points[c])
-        # No body appears twice in a colour, so the writes do not overlap.
-        return v.at[:, index].set(both, unique_indices=True), out.at[c].set(new)
+        # Only an always-static body appears twice in a colour (layout.walls_repeat), and its
+        # velocity is unchanged by every slot (zero inverse mass): overlapping writes agree.
+        return v.at[:, index].set(both, unique_indices=not layout.walls_repeat), out.at[c].set(new)
 
     v, out = jax.lax.fori_loop(0, plan.count, body, (stacked, var[:, :rows]))
     return Vel(v[0], v[1], v[2]), out

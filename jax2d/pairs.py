@@ -39,10 +39,21 @@ class ContactLayout:
     by_kind: dict
     # For each slot, its row in the concatenation of the by_kind results (kind order) plus one empty row.
     gather: np.ndarray  # (S,)
+    # The order the solver visits the slots in: colour c is solve_slots[c * K:(c + 1) * K]. The
+    # identity unless always-static walls may repeat within a colour (see wall_grouped).
+    solve_slots: np.ndarray  # (S,) a permutation of the slots
+    walls_repeat: bool  # some body (always static) appears more than once in a colour
 
     @property
     def num_slots(self) -> int:
         return self.num_colours * self.per_colour
+
+    @property
+    def solve_sides(self) -> np.ndarray:
+        """(C, 2K): the bodies of side a, then of side b, of each colour's slots in solve order."""
+        C, K = self.num_colours, self.per_colour
+        return np.concatenate([self.slot_a[self.solve_slots].reshape(C, K),
+                               self.slot_b[self.solve_slots].reshape(C, K)], axis=1)
 
 
 def circle_method(m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -55,6 +66,58 @@ def circle_method(m: int) -> tuple[np.ndarray, np.ndarray]:
         a.append(line[: m // 2])
         b.append(line[m // 2 :][::-1])
     return np.array(a, dtype=np.int32), np.array(b, dtype=np.int32)
+
+
+def wall_grouped(num_padded: int, static: list[int]) -> np.ndarray | None:
+    """Colours in which the always-static bodies may repeat, so each one's pairs share few colours.
+
+    Returns (C, K, 2) body pairs covering every pair of the num_padded bodies once, or None where
+    this construction does not apply. Why: a body lying on the floor has a contact with body 0 in
+    every step, and the round-robin puts each pair of body 0 in a colour of its own, so five boxes
+    on the floor keep five colours live in every sweep. A static body's velocity never changes, so
+    it may stand in many slots of one colour.
+
+    Construction, with s static bodies and the D others split into q = D / s groups of s (s even,
+    q odd): colour (w, i) pairs static body w with every body of group i, and pairs the other groups
+    with each other along round i of a round-robin of the q groups (group pair (j, k) by the Latin
+    matching t -> (t + w) mod s). Then s - 1 colours each hold one round-robin matching inside every
+    group plus one of the static bodies with each other. Each static body's pairs then fill q colours
+    instead of D.
+    """
+    M = num_padded
+    static = list(static)
+    s = len(static)
+    dynamic = [i for i in range(M) if i not in static]
+    D = len(dynamic)
+    if s < 2 or s % 2 or D < s or D % s or (D // s) % 2 == 0:
+        return None
+    q = D // s
+    groups = [dynamic[i * s:(i + 1) * s] for i in range(q)]
+    rounds_a, rounds_b = circle_method(q + 1)  # q odd: q + 1 "teams"; team q is the bye
+    bye = {int(x if y == q else y): r for r in range(q)
+           for x, y in zip(rounds_a[r], rounds_b[r], strict=True) if q in (x, y)}
+    colours = []
+    for i in range(q):
+        r = bye[i]
+        group_pairs = [(j, k) for j, k in zip(rounds_a[r], rounds_b[r], strict=True) if q not in (j, k)]
+        for w in range(s):
+            colour = [(static[w], d) for d in groups[i]]
+            colour += [(groups[j][t], groups[k][(t + w) % s]) for j, k in group_pairs for t in range(s)]
+            colours.append(colour)
+    inner_a, inner_b = circle_method(s)
+    for r in range(s - 1):
+        colour = [(g[inner_a[r][t]], g[inner_b[r][t]]) for g in groups for t in range(s // 2)]
+        colour += [(static[inner_a[r][t]], static[inner_b[r][t]]) for t in range(s // 2)]
+        colours.append(colour)
+    return np.array(colours, dtype=np.int32)
+
+
+def _solve_order(a: np.ndarray, b: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """The slot of each pair of `colours` (C, K, 2), flattened: the permutation that visits them in that order."""
+    slot = {(min(x, y), max(x, y)): i for i, (x, y) in enumerate(zip(a.tolist(), b.tolist(), strict=True))}
+    order = np.array([slot[(min(x, y), max(x, y))] for x, y in colours.reshape(-1, 2).tolist()], dtype=np.int32)
+    assert sorted(order.tolist()) == list(range(len(a))), "wall_grouped must cover every pair once"
+    return order
 
 
 @functools.cache
@@ -74,4 +137,12 @@ def contact_layout(num_polygons: int, num_circles: int, num_static: int = 0) -> 
     order = np.concatenate(list(by_kind.values()))
     gather = np.full(a.shape, len(order), dtype=np.int32)
     gather[order] = np.arange(len(order), dtype=np.int32)
-    return ContactLayout(N, M, M - 1, M // 2, a, b, kind, by_kind, gather)
+    # With always-static walls, colours where they repeat: the dummy body N (static too) joins them
+    # where that makes the construction apply.
+    grouped = None
+    if num_static:
+        walls = list(range(num_static))
+        options = [walls + [N], walls] if M > N else [walls]
+        grouped = next((g for g in (wall_grouped(M, st) for st in options) if g is not None), None)
+    solve = np.arange(len(a), dtype=np.int32) if grouped is None else _solve_order(a, b, grouped)
+    return ContactLayout(N, M, M - 1, M // 2, a, b, kind, by_kind, gather, solve, grouped is not None)

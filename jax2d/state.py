@@ -192,8 +192,9 @@ class SolverConfig:
     # moving the bodies (up to a cap per step, joint_solver.MAX_SHIFT / MAX_TURN), without changing
     # velocities. None skips it; it needs joint_projection.
     joint_position_projection: float | None = 1.0
-    # The first `num_static` polygons are always static (the public Kinetix walls);
-    # pairs among them are never checked.
+    # The first `num_static` polygons are always static (the public Kinetix walls), a promise
+    # the caller keeps: pairs among them are never checked, and the contact sweeps may visit
+    # them in several slots of one colour (pairs.wall_grouped), which is wrong for a moving body.
     num_static: int = 0
     # Batches larger than this are stepped in equal parts of at most this many scenes, one part
     # after the other, so each part's constraint data stays in the CPU's cache (step.step_batch).

@@ -118,8 +118,8 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
             pose = Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)
     first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
-    return jax.vmap(_store)(states, params, pose, vel, jax.vmap(contact_solver.unpack_impulses)(cimp), jimp,
-                            manifold, valid, dyn)
+    cimp = jax.vmap(functools.partial(contact_solver.unpack_impulses, layout))(cimp)
+    return jax.vmap(_store)(states, params, pose, vel, cimp, jimp, manifold, valid, dyn)
 
 
 @functools.cache

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jax2d.state import COLLIDE_ALL, Capacity, SimParams, SimState, empty_state
+from jax2d.state import COLLIDE_ALL, Capacity, SimParams, SimState, SolverConfig, empty_state
 
 # Roles decide rewards: touching green to blue wins, green touching red loses.
 ROLE_NONE, ROLE_GREEN, ROLE_BLUE, ROLE_RED = range(4)
@@ -228,6 +228,31 @@ def add_walls(state: SimState) -> SimState:
         b["active"][slot] = True
     bodies = dataclasses.replace(state.bodies, **{k: jnp.asarray(v) for k, v in b.items()})
     return dataclasses.replace(state, bodies=bodies)
+
+
+# The solver for levels whose polygon slots 0-3 hold only static bodies (the standard walls, as in every
+# public Kinetix level, every generated level and every level drawn in the editor): the contact sweeps may
+# then group the walls' pairs into few colours (jax2d.pairs.wall_grouped; l steps ~20 % faster at batch 1).
+WALLS_SOLVER = SolverConfig(num_static=NUM_WALLS)
+
+
+def walls_static(level: Level) -> bool:
+    """True when every body in polygon slots 0-3 is static or absent, so WALLS_SOLVER applies.
+
+    Our format also allows a moving body there (a level without the standard walls); such a level
+    needs the plain SolverConfig(), which checks every pair.
+    """
+    b = level.sim.bodies
+    if level.sim.num_polygons < NUM_WALLS:
+        return False
+    active, inv_mass, inv_inertia = (np.asarray(x[:NUM_WALLS]) for x in (b.active, b.inv_mass, b.inv_inertia))
+    return bool(np.all(~active | ((inv_mass == 0) & (inv_inertia == 0))))
+
+
+def solver_for(levels) -> SolverConfig:
+    """WALLS_SOLVER if every level given (one Level or several) keeps its walls static, else SolverConfig()."""
+    levels = [levels] if isinstance(levels, Level) else list(levels)
+    return WALLS_SOLVER if levels and all(walls_static(lv) for lv in levels) else SolverConfig()
 
 
 def empty_level(size: str | SizeClass = "l", gravity=(0.0, -9.81)) -> Level:

@@ -82,13 +82,14 @@ class StepResult:
 class Stepper:
     """The jitted `transition` of a KinetixEnv for one size class and frame skip (no reset, no observation)."""
 
-    def __init__(self, size, frame_skip: int):
+    def __init__(self, size, frame_skip: int, solver=None):
         import jax2d
         from kinetix.env import EnvConfig, make_env
-        from kinetix.level import empty_level
+        from kinetix.level import WALLS_SOLVER, empty_level
 
         self.size, self.frame_skip = size, frame_skip
-        self.env = make_env(EnvConfig(size=size, frame_skip=frame_skip), empty_level(size))
+        self.env = make_env(EnvConfig(size=size, frame_skip=frame_skip, solver=solver or WALLS_SOLVER),
+                            empty_level(size))
         self._transition = jax2d.jit(self.env.transition)
         self._initial = jax2d.jit(self._initial_state)
         self._batched: dict[int, object] = {}  # bucket -> compiled batched transition, once ready
@@ -267,17 +268,23 @@ def warm_batches_in_background(sizes=("s", "m", "l"), frame_skip: int = 2, then=
     _start_compile(compile_all)
 
 
-_STEPPERS: dict[tuple[str, int], Stepper] = {}
+_STEPPERS: dict[tuple, Stepper] = {}  # (size, frame skip, solver)
 _STEPPERS_LOCK = threading.Lock()
 
 
 def stepper_for(level_file) -> Stepper:
-    """The shared Stepper for this level file's size class and frame skip."""
+    """The shared Stepper for this level file's size class, frame skip and solver.
+
+    Levels with the standard static walls (nearly all) share the WALLS_SOLVER program; a level with a moving
+    body in polygon slots 0-3 gets one with the plain solver (kinetix.level.solver_for)."""
+    from kinetix.level import solver_for
+
     size = level_file.size
-    key = (size.name if size.name != "custom" else repr(size), int(level_file.params.frame_skip))
+    solver = solver_for(level_file.level)
+    key = (size.name if size.name != "custom" else repr(size), int(level_file.params.frame_skip), solver)
     with _STEPPERS_LOCK:
         if key not in _STEPPERS:
-            _STEPPERS[key] = Stepper(size, key[1])
+            _STEPPERS[key] = Stepper(size, key[1], solver)
         return _STEPPERS[key]
 
 

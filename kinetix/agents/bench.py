@@ -17,7 +17,7 @@ from kinetix.agents import curricula
 from kinetix.agents.ppo import TrainConfig, make_train
 from kinetix.agents.train import RANDOM_DENSE_REWARD
 from kinetix.env import EnvConfig, EnvParams, make_env
-from kinetix.level import size_class
+from kinetix.level import WALLS_SOLVER, size_class
 
 
 def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int) -> dict:
@@ -25,7 +25,7 @@ def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_c
 
     sc = size_class(size)
     generator = lambda key: sample_level(key, sc)
-    env = make_env(EnvConfig(sc), generator)
+    env = make_env(EnvConfig(sc, solver=WALLS_SOLVER), generator)  # as `kinetix train` on random levels
     config = TrainConfig(num_envs=num_envs, num_steps=num_steps, updates_per_call=updates_per_call,
                          total_timesteps=num_envs * num_steps * updates_per_call * (chunks + 1))
     trainer = make_train(config, env, EnvParams(dense_reward_scale=RANDOM_DENSE_REWARD),

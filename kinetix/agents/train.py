@@ -37,7 +37,7 @@ from kinetix.agents.policy import resolve
 from kinetix.agents.ppo import TrainConfig, make_train
 from kinetix.agents.rollout import run_episodes
 from kinetix.env import EnvConfig, EnvParams, make_env
-from kinetix.level import LevelError, size_class
+from kinetix.level import WALLS_SOLVER, LevelError, size_class, solver_for
 from kinetix.levels import load_level, resize
 from kinetix.reset_fns import stack_levels
 
@@ -53,7 +53,8 @@ def setup_levels(level: str, curriculum: str | None, observation: str, action: s
 
         size = size_class(level[-1])
         generator = lambda key: sample_level(key, size)
-        env = make_env(EnvConfig(size, observation=observation, action=action), generator)
+        # Generated levels are built on empty_level: their walls are static.
+        env = make_env(EnvConfig(size, observation=observation, action=action, solver=WALLS_SOLVER), generator)
         params = EnvParams(dense_reward_scale=RANDOM_DENSE_REWARD if dense_reward is None else dense_reward)
         name = curriculum or "dr"
         if name == "dr":
@@ -74,7 +75,8 @@ def setup_levels(level: str, curriculum: str | None, observation: str, action: s
         raise LevelError(f"the levels in {level} use different frame skips {sorted(skips)}; train them separately")
     largest = max((lf.size for lf in files), key=lambda s: (s.polygons + s.circles, s.joints, s.thrusters))
     files = [lf if lf.size == largest else resize(lf, largest) for lf in files]
-    env = make_env(EnvConfig(largest, observation=observation, action=action, frame_skip=skips.pop()), files[0])
+    env = make_env(EnvConfig(largest, observation=observation, action=action, frame_skip=skips.pop(),
+                             solver=solver_for([lf.level for lf in files])), files[0])
     params = EnvParams.from_level_params(files[0].params)
     if dense_reward is not None:
         params = dataclasses.replace(params, dense_reward_scale=dense_reward)

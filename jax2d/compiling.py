@@ -37,9 +37,9 @@ class Jitted:
     """
 
     def __init__(self, fun: Callable, options: dict[str, Any], kwargs: dict[str, Any]) -> None:
+        functools.update_wrapper(self, fun)  # first: it copies fun.__dict__, which must not replace the jits below
         self._top = jax.jit(fun, compiler_options=options, **kwargs)  # noqa: TID251 - the one place
         self._nested = jax.jit(fun, **kwargs)  # noqa: TID251 - the one place
-        functools.update_wrapper(self, fun)
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         return (self._top if _core.trace_state_clean() else self._nested)(*args, **kwargs)

@@ -34,6 +34,8 @@ def test_a_jax2d_jit_function_works_inside_other_traces_and_keeps_the_jit_api() 
     assert np.allclose(jax.vmap(lambda x: inner(x, n=2))(np.arange(3.0, dtype=np.float32)), [0, 2, 4])
     assert float(inner.lower(np.float32(1), n=4).compile()(np.float32(1))) == 4.0
     assert inner.__name__ == "<lambda>"
+    again = jax2d.jit(inner, static_argnames="n")  # wrapping a Jitted: its attributes must not replace ours
+    assert again._top is not inner._top and float(again(np.float32(2), n=5)) == 10.0
 
 
 @pytest.mark.parametrize("seed", [3, 11])

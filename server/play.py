@@ -80,7 +80,7 @@ class StepResult:
 
 
 class Stepper:
-    """The jitted `transition` of a KinetixEnv for one size class and frame skip (no reset, no observation)."""
+    """The jitted `transition` of a KinetixEnv for one size class, frame skip and solver (no reset, no observation)."""
 
     def __init__(self, size, frame_skip: int, solver=None):
         import jax2d

@@ -68,18 +68,15 @@ def level_workload(path: str) -> Workload:
     """
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
-    from jax2d import SolverConfig
+    from kinetix.level import solver_for
     from kinetix.levels import load_level
 
     file = load_level(path)
     state = file.level.sim
-    # Standard levels keep the 4 walls static in polygon slots 0-3; only then may the solver skip their pairs.
-    walls_static = state.num_polygons >= 4 and bool((np.asarray(state.bodies.inv_mass[:4]) == 0).all())
-    config = SolverConfig(num_static=4 if walls_static else 0)
+    # The solver the server plays this level with: the walls one where polygon slots 0-3 are static.
     return Workload(file.name or path, lambda batch: jax.tree.map(lambda x: jnp.stack([x] * batch), state),
-                    config, file.params.sim_params())
+                    solver_for(file.level), file.params.sim_params())
 
 
 @contextlib.contextmanager

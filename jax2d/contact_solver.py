@@ -12,13 +12,13 @@ Gauss-Seidel pass. Colours without any point are skipped (see schedule).
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse, stored
+from jax2d.math2d import Pose, Softness, Vel, at, cross, rotate, safe_inverse, set_at, stored
 from jax2d.pairs import ContactLayout
 
 
@@ -87,17 +87,26 @@ def _relative_velocity(vax, vay, wa, vbx, vby, wb, rax, ray, rbx, rby):
     return (vbx - wb * rby) - (vax - wa * ray), (vby + wb * rbx) - (vay + wa * rax)
 
 
-def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose, pose0: Pose):
+def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose, pose0: Pose, token):
     """Packed (C, 2, K, *batch) separation after the bodies moved from pose0 to pose, anchors rotated with them.
 
     Runs inside the substeps on batch-last arrays (see step.py): per-body (M, *batch), per-slot (S, *batch).
+    token: a traced non-negative integer, the substep (see math2d.stored).
     """
     a, b = layout.slot_a, layout.slot_b
 
+    def per_body(pose, pose0):
+        da = pose.a - pose0.a
+        return jnp.stack([pose.x - pose0.x, pose.y - pose0.y, jnp.cos(da), jnp.sin(da)])
+
+    # Each body's move as one stored (4, M, *batch) array, so the cosine and sine are computed per
+    # body (M of them) rather than per slot and point (M^2 - M), which fused into the gathers by slot.
+    move = stored(token, per_body, pose, pose0)
+
     def moved_anchor(i, rx, ry):
-        da = (pose.a - pose0.a)[i][:, None]
-        qx, qy = rotate(jnp.cos(da), jnp.sin(da), rx, ry)
-        return (pose.x - pose0.x)[i][:, None] + qx, (pose.y - pose0.y)[i][:, None] + qy
+        dx, dy, cos, sin = (m[:, None] for m in move[:, i])
+        qx, qy = rotate(cos, sin, rx, ry)
+        return dx + qx, dy + qy
 
     pax, pay = moved_anchor(a, cc.rax, cc.ray)
     pbx, pby = moved_anchor(b, cc.rbx, cc.rby)
@@ -109,11 +118,19 @@ def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose
 # (C, F, K) array: the scan slices one (F, K) block per colour, each field a contiguous row
 # of the colour's K slots. Constraint data is packed once per step; impulses stay packed
 # through all substeps.
-CONST_ROWS = ("nx", "ny", "friction", "restitution", "ma", "ia", "mb", "ib",
+#
+# A colour's velocities are the (3, 2K) rows the sweep gathers, viewed as six rows of K (VEL_ROWS).
+# An impulse p along a point's normal or tangent changes them by p times six constant rows, its
+# push rows (the inverse masses times the constraint's Jacobian), which prepare packs once per
+# step: a velocity update is then one elementwise kernel over contiguous rows.
+VEL_ROWS = ("xa", "xb", "ya", "yb", "wa", "wb")  # x of side a, x of side b, y of a, y of b, w of a, w of b
+PUSH_ROWS = {(kind, k): tuple(f"{kind}{k}_{v}" for v in VEL_ROWS) for kind in ("normal", "tangent") for k in range(2)}
+CONST_ROWS = ("nx", "ny", "friction", "restitution",
               "rax0", "rax1", "ray0", "ray1", "rbx0", "rbx1", "rby0", "rby1",
-              "nmass0", "nmass1", "tmass0", "tmass1", "rel0", "rel1")
+              "nmass0", "nmass1", "tmass0", "tmass1", "rel0", "rel1") + sum(PUSH_ROWS.values(), ())
 IMPULSE_ROWS = ("n0", "n1", "t0", "t1", "max0", "max1")
 _ROW = {name: i for i, name in enumerate(CONST_ROWS)}
+_N, _T, _MAX = 0, 2, 4  # first impulse row of the normal, tangent and largest normal impulses
 
 
 def pack_rows(layout: ContactLayout, rows) -> jax.Array:
@@ -129,13 +146,22 @@ def unpack_rows(layout: ContactLayout, packed) -> jax.Array:
     """(C, F, K, *batch), solve order -> (F, S, *batch), slot order."""
     C, F, K = packed.shape[:3]
     rows = jnp.swapaxes(packed, 0, 1).reshape((F, C * K) + packed.shape[3:])
-    return rows[:, np.argsort(layout.solve_slots)] if layout.walls_repeat else rows
+    return rows[:, layout.slot_order] if layout.walls_repeat else rows
+
+
+def _push_rows(cc: ContactConstraints, k: int, dx, dy) -> list:
+    """The change of VEL_ROWS per unit impulse along (dx, dy) at point k: -p on side a, +p on side b."""
+    return [-cc.ma * dx, cc.mb * dx, -cc.ma * dy, cc.mb * dy,
+            -cc.ia * cross(cc.rax[:, k], cc.ray[:, k], dx, dy), cc.ib * cross(cc.rbx[:, k], cc.rby[:, k], dx, dy)]
 
 
 def pack_constraints(layout: ContactLayout, cc: ContactConstraints) -> jax.Array:
     per_point = (cc.rax, cc.ray, cc.rbx, cc.rby, cc.normal_mass, cc.tangent_mass, cc.relative_velocity)
-    rows = [cc.nx, cc.ny, cc.friction, cc.restitution, cc.ma, cc.ia, cc.mb, cc.ib]
+    rows = [cc.nx, cc.ny, cc.friction, cc.restitution]
     rows += [x[:, k] for x in per_point for k in range(2)]
+    direction = {"normal": (cc.nx, cc.ny), "tangent": (cc.ny, -cc.nx)}
+    for kind, k in PUSH_ROWS:
+        rows += _push_rows(cc, k, *direction[kind])
     return pack_rows(layout, rows)
 
 
@@ -148,19 +174,37 @@ def unpack_impulses(layout: ContactLayout, packed) -> ContactImpulses:
     return ContactImpulses(*(jnp.stack([rows[i], rows[i + 1]], axis=1) for i in range(0, 6, 2)))
 
 
-class _Block:
-    """Named access to one colour's constant rows."""
+class _Rows:
+    """Colour c's rows of a packed (C, F, K, *batch) array, read row by row where they are used.
 
-    def __init__(self, block):
-        self.block = block
+    Each read is a dynamic slice that XLA fuses into the kernel reading it; slicing the colour's
+    whole (F, K) block first made the solver copy it in every colour of every sweep, because
+    the conditionals that read a few of its rows take the block as an operand.
+    """
+
+    def __init__(self, packed, c):
+        self.packed, self.c = packed, c
+
+    def __getitem__(self, i):
+        return at(self.packed[:, i], self.c)
+
+
+class _Block(_Rows):
+    """Named access to colour c's constant rows (CONST_ROWS)."""
 
     def __getattr__(self, name):
-        return self.block[_ROW[name]]
+        if name.startswith("__"):  # copy and pickle probe for these
+            raise AttributeError(name)
+        return self[_ROW[name]]
 
-    def point(self, name, k):
-        """Row of point k (k may be traced: both points' rows are adjacent)."""
-        i = _ROW[f"{name}0"]
-        return self.block[i:i + 2][k]
+    def point(self, name, k: int):
+        """Row of point k."""
+        return self[_ROW[f"{name}{k}"]]
+
+    def push(self, kind: str, k: int):
+        """(6, K, *batch) the push rows of point k's normal or tangent."""
+        i = _ROW[PUSH_ROWS[(kind, k)][0]]
+        return self[i:i + len(VEL_ROWS)]
 
 
 class Schedule(NamedTuple):
@@ -179,9 +223,8 @@ def schedule(const) -> Schedule:
     touch 3 of 7, 9 and 15 on average), so this makes a step at a small batch much cheaper;
     a batch of very different scenes skips only the colours empty in all of them.
 
-    Likewise the point loops stop after the first point in a colour where no slot has a second
-    one in any scene (contacts with a circle have one point): solving an absent point changes
-    nothing.
+    Likewise a colour's second point is skipped where no slot of it has one in any scene
+    (contacts with a circle have one point): solving an absent point changes nothing.
     """
     i = _ROW["nmass0"]
     masses = const[:, i:i + 2]
@@ -191,51 +234,89 @@ def schedule(const) -> Schedule:
     return Schedule(order, jnp.sum(live, dtype=jnp.int32), 1 + second.astype(jnp.int32))
 
 
-def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, var, plan: Schedule):
-    """Run `solve_colour(sides, const_block, var_block, points) -> (sides, new_var_block)` on every live
-    colour in order (points: how many of the two points any slot of the colour has).
+def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: Schedule, *inputs):
+    """Run `solve_colour(vels, lam, points, const_block, *input_rows) -> (vels, lam)` on every live
+    colour in order. vels: the colour's (6, K, *batch) VEL_ROWS; lam: its (6, K, *batch) impulse
+    rows; points: how many of the two points any slot of the colour has; const_block and
+    input_rows: the colour's rows of const and of each packed (C, F, K, *batch) input. A
+    solve_colour that changes no impulse returns lam None.
 
     A loop over the schedule's live colours: each iteration gathers the velocities of the K bodies
-    of side a and the K of side b as one (3, 2K, *batch) array (see _split / _join), solves, and
-    writes them back. One array rather than six: each gather, scatter and velocity update is then
-    one kernel, and a step at a small batch is a long chain of such small kernels. Skipped
-    colours keep the first rows of their var block, which is what solving them would give.
-    Returns the velocities and the (C, F_out, K, *batch) new var blocks.
+    of side a and the K of side b as one (3, 2K, *batch) array, solves, and writes them back by a
+    gather (layout.write_back). One array rather than six: each gather and velocity update is then
+    one kernel, and a step at a small batch is a long chain of such small kernels. Skipped colours
+    keep their impulses, which is what solving them would give.
+    Returns the velocities and the packed (C, 6, K, *batch) impulses.
     """
     K = layout.per_colour
-    sides = jnp.asarray(layout.solve_sides)
+    sides, write_back = jnp.asarray(layout.solve_sides), jnp.asarray(layout.write_back)
     stacked = jnp.stack(vel)  # (3, M, *batch)
-    rows = jax.eval_shape(lambda: solve_colour(stacked[:, :2 * K], _Block(const[0]), var[0], 2)[1]).shape[0]
+    batch = stacked.shape[2:]
+
+    def colour(v, lam, c):
+        vels = v[:, at(sides, c)].reshape((6, K) + batch)
+        vels, lam = solve_colour(vels, lam, at(plan.points, c), _Block(const, c), *(_Rows(x, c) for x in inputs))
+        return jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1)[:, at(write_back, c)], lam
 
     def body(i, carry):
         v, out = carry
-        c = plan.order[i]
-        index = sides[c]
-        both, new = solve_colour(v[:, index], _Block(const[c]), var[c], plan.points[c])
-        # Only an always-static body appears twice in a colour (layout.walls_repeat), and its
-        # velocity is unchanged by every slot (zero inverse mass): overlapping writes agree.
-        return v.at[:, index].set(both, unique_indices=not layout.walls_repeat), out.at[c].set(new)
+        c = at(plan.order, i)
+        # Read from the input, not the carry: reading a slice of the array the loop updates in place
+        # made XLA copy all of it in every iteration.
+        v, lam = colour(v, at(impulses, c), c)
+        return v, set_at(out, c, lam)
 
-    v, out = jax.lax.fori_loop(0, plan.count, body, (stacked, var[:, :rows]))
-    return Vel(v[0], v[1], v[2]), out
+    def body_same_impulses(i, v):
+        c = at(plan.order, i)
+        return colour(v, at(impulses, c), c)[0]
 
-
-def _split(both) -> tuple[Vel, Vel]:
-    """(3, 2K, *batch) velocities of a colour's two sides -> side a, side b."""
-    K = both.shape[1] // 2
-    return Vel(both[0, :K], both[1, :K], both[2, :K]), Vel(both[0, K:], both[1, K:], both[2, K:])
-
-
-def _join(va: Vel, vb: Vel):
-    """The inverse of _split."""
-    return jnp.stack([jnp.concatenate([a, b]) for a, b in zip(va, vb, strict=True)])
+    probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[0], 2, _Block(const, 0),
+                                                *(_Rows(x, 0) for x in inputs))[1])
+    if probe is None:
+        v = jax.lax.fori_loop(0, plan.count, body_same_impulses, stacked)
+    else:
+        v, impulses = jax.lax.fori_loop(0, plan.count, body, (stacked, impulses))
+    return Vel(v[0], v[1], v[2]), impulses
 
 
-def _apply(va: Vel, vb: Vel, ma, ia, mb, ib, rax, ray, rbx, rby, px, py):
-    """Apply impulse (px, py) to b and its opposite to a, at the given anchors."""
-    va = Vel(va.x - ma * px, va.y - ma * py, va.w - ia * cross(rax, ray, px, py))
-    vb = Vel(vb.x + mb * px, vb.y + mb * py, vb.w + ib * cross(rbx, rby, px, py))
-    return va, vb
+def _sides(vels) -> tuple[Vel, Vel]:
+    """A colour's VEL_ROWS as the velocities of side a and of side b."""
+    return Vel(vels[0], vels[2], vels[4]), Vel(vels[1], vels[3], vels[5])
+
+
+def _with_rows(lam, rows: dict) -> jax.Array:
+    """lam (6, K, *batch) impulse rows with the rows in `rows` ({row: value}) replaced: an elementwise
+    select, so that the update stays one kernel (a stack of rows compiled to one per row)."""
+    index = jnp.arange(lam.shape[0]).reshape((-1,) + (1,) * (lam.ndim - 1))
+    for row, value in rows.items():
+        lam = jnp.where(index == row, value[None], lam)
+    return lam
+
+
+def _for_points(points, row: int, accumulated, push, vels, lam):
+    """Solve one impulse row of the points k < `points` of a colour, point by point.
+
+    accumulated(k, vels, lam) -> the new accumulated impulse of row `row + k`; push(k, vels, lam, new)
+    -> the velocities and impulses with it applied. The first is the branch of a conditional
+    (k < points), so the impulse is computed once and stored: XLA's CPU fusion copies a chain of
+    elementwise operations into each of its consumers, which would recompute it for every row it
+    changes. Point 0's condition always holds for a live colour; XLA cannot know that, so it stays
+    a conditional too. An absent point keeps its impulse, so push changes nothing.
+
+    A point's update is then three kernels; a point loop over separate arrays took about 18.
+    """
+    for k in range(2):
+        new = jax.lax.cond(points > k, functools.partial(accumulated, k), lambda v, lam, r=row + k: lam[r], vels, lam)
+        vels, lam = push(k, vels, lam, new)
+    return vels, lam
+
+
+def _velocity_along(c: _Block, k: int, vels, dx, dy):
+    """Relative velocity at point k along (dx, dy)."""
+    va, vb = _sides(vels)
+    rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
+    dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
+    return dvx * dx + dvy * dy
 
 
 def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule) -> Vel:
@@ -245,15 +326,11 @@ def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule)
     always runs in colour order (the same for every batch width and every run of a program).
     """
 
-    def apply_colour(both, c: _Block, var, points):
-        va, vb = _split(both)
-        tx, ty = c.ny, -c.nx
-        for k in range(2):
-            px = var[k] * c.nx + var[2 + k] * tx
-            py = var[k] * c.ny + var[2 + k] * ty
-            va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, c.point("rax", k), c.point("ray", k),
-                            c.point("rbx", k), c.point("rby", k), px, py)
-        return _join(va, vb), var
+    def apply_colour(vels, lam, points, c: _Block):
+        for row, (kind, k) in ((_N, ("normal", 0)), (_N + 1, ("normal", 1)), (_T, ("tangent", 0)),
+                               (_T + 1, ("tangent", 1))):
+            vels = vels + c.push(kind, k) * lam[row][None]
+        return vels, None
 
     return _sweep(layout, vel, apply_colour, const, impulses, plan)[0]
 
@@ -263,17 +340,10 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
     """One Gauss-Seidel sweep of normal then friction constraints over all colours.
 
     const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
-    Within a colour the two points are loops, not unrolled: a loop boundary stores its
-    carry, which stops XLA from re-deriving each output from the whole chain of updates;
-    inside a point, `stored` does the same for the new accumulated impulse.
     """
 
-    def normal(k, carry, c: _Block, sep):
-        both, lam_n, lam_max = carry
-        va, vb = _split(both)
-        rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
-        dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
-        vn = dvx * c.nx + dvy * c.ny
+    def normal(c: _Block, sep, k, vels, lam):
+        vn = _velocity_along(c, k, vels, c.nx, c.ny)
         s = sep[k]
         speculative = s > 0.0
         if use_bias:
@@ -283,37 +353,28 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         else:
             bias = jnp.where(speculative, s * inv_h, 0.0)
             mass_scale, impulse_scale = 1.0, 0.0
-        old = lam_n[k]
+        old = lam[_N + k]
+        return jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old, 0.0)
 
-        def accumulate(vn, old, bias, mass_scale, impulse_scale):
-            return jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old, 0.0)
+    def push_normal(c: _Block, k, vels, lam, new):
+        impulse = new - lam[_N + k]
+        return (vels + c.push("normal", k) * impulse[None],
+                _with_rows(lam, {_N + k: new, _MAX + k: jnp.maximum(lam[_MAX + k], impulse)}))
 
-        new = stored(k, accumulate, vn, old, bias, mass_scale, impulse_scale)
-        impulse = new - old
-        va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
-        return _join(va, vb), lam_n.at[k].set(new), lam_max.at[k].set(jnp.maximum(lam_max[k], impulse))
+    def friction(c: _Block, k, vels, lam):
+        vt = _velocity_along(c, k, vels, c.ny, -c.nx)
+        limit = c.friction * lam[_N + k]
+        return jnp.clip(lam[_T + k] - c.point("tmass", k) * vt, -limit, limit)
 
-    def friction(k, carry, c: _Block, lam_n):
-        both, lam_t = carry
-        va, vb = _split(both)
-        tx, ty = c.ny, -c.nx
-        rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
-        dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
-        vt = dvx * tx + dvy * ty
-        limit = c.friction * lam_n[k]
-        old = lam_t[k]
-        new = stored(k, lambda old, vt, limit: jnp.clip(old - c.point("tmass", k) * vt, -limit, limit), old, vt, limit)
-        impulse = new - old
-        va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * tx, impulse * ty)
-        return _join(va, vb), lam_t.at[k].set(new)
+    def push_friction(c: _Block, k, vels, lam, new):
+        return vels + c.push("tangent", k) * (new - lam[_T + k])[None], _with_rows(lam, {_T + k: new})
 
-    def solve_colour(both, c: _Block, var, points):
-        both, lam_n, lam_max = jax.lax.fori_loop(
-            0, points, lambda k, carry: normal(k, carry, c, var[6:8]), (both, var[0:2], var[4:6]))
-        both, lam_t = jax.lax.fori_loop(0, points, lambda k, carry: friction(k, carry, c, lam_n), (both, var[2:4]))
-        return both, jnp.concatenate([lam_n, lam_t, lam_max])
+    def solve_colour(vels, lam, points, c: _Block, sep: _Rows):
+        vels, lam = _for_points(points, _N, functools.partial(normal, c, sep), functools.partial(push_normal, c),
+                                vels, lam)
+        return _for_points(points, _T, functools.partial(friction, c), functools.partial(push_friction, c), vels, lam)
 
-    return _sweep(layout, vel, solve_colour, const, jnp.concatenate([impulses, separation], axis=1), plan)
+    return _sweep(layout, vel, solve_colour, const, impulses, plan, separation)
 
 
 def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, plan: Schedule) -> tuple[Vel, jax.Array]:
@@ -323,24 +384,18 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, pla
         """Which points bounce: approaching faster than the threshold, pushed this step, restitution > 0."""
         return (rel < -threshold) & (lam_max > 0.0) & (restitution > 0.0)
 
-    def bounce(k, carry, c: _Block, lam_max):
-        both, lam_n = carry
-        va, vb = _split(both)
+    def bounce(c: _Block, k, vels, lam):
         rel = c.point("rel", k)
-        hit = hits(rel, lam_max[k], c.restitution)
-        rax, ray, rbx, rby = c.point("rax", k), c.point("ray", k), c.point("rbx", k), c.point("rby", k)
-        dvx, dvy = _relative_velocity(va.x, va.y, va.w, vb.x, vb.y, vb.w, rax, ray, rbx, rby)
-        vn = dvx * c.nx + dvy * c.ny
-        old = lam_n[k]
-        new = stored(k, lambda old, vn: jnp.maximum(
-            old + jnp.where(hit, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0), 0.0), old, vn)
-        impulse = new - old
-        va, vb = _apply(va, vb, c.ma, c.ia, c.mb, c.ib, rax, ray, rbx, rby, impulse * c.nx, impulse * c.ny)
-        return _join(va, vb), lam_n.at[k].set(new)
+        hit = hits(rel, lam[_MAX + k], c.restitution)
+        vn = _velocity_along(c, k, vels, c.nx, c.ny)
+        old = lam[_N + k]
+        return jnp.maximum(old + jnp.where(hit, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0), 0.0)
 
-    def solve_colour(both, c: _Block, var, points):
-        both, lam_n = jax.lax.fori_loop(0, points, lambda k, carry: bounce(k, carry, c, var[4:6]), (both, var[0:2]))
-        return both, jnp.concatenate([lam_n, var[2:]])
+    def push(c: _Block, k, vels, lam, new):
+        return vels + c.push("normal", k) * (new - lam[_N + k])[None], _with_rows(lam, {_N + k: new})
+
+    def solve_colour(vels, lam, points, c: _Block):
+        return _for_points(points, _N, functools.partial(bounce, c), functools.partial(push, c), vels, lam)
 
     # Most steps bounce nowhere in the batch; then the sweep would change nothing (every impulse
     # stays as it is), so it is skipped: a few hundred small kernels per step at a small batch.

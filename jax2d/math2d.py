@@ -62,6 +62,21 @@ def one_hot_rows(index, m: int):
     return (index[:, None] == classes).astype(jnp.float32)
 
 
+def at(x, i):
+    """x[i] on axis 0 for a traced loop index i that is in range.
+
+    `x[i]` with a traced i also wraps negative indices around, and inside the solver's loops that
+    select is a kernel of its own in every iteration; a loop index is never negative.
+    """
+    return jax.lax.dynamic_index_in_dim(x, i, 0, keepdims=False, allow_negative_indices=False)
+
+
+def set_at(x, i, value):
+    """x.at[i].set(value) for a traced loop index i that is in range (see `at`): a plain update
+    in place, without the wrap-around and the bounds check of a scatter."""
+    return jax.lax.dynamic_update_index_in_dim(x, value, i, 0, allow_negative_indices=False)
+
+
 def stored(token, fn, *args):
     """fn(*args), computed once and kept in memory for every consumer.
 

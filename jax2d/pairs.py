@@ -55,6 +55,27 @@ class ContactLayout:
         return np.concatenate([self.slot_a[self.solve_slots].reshape(C, K),
                                self.slot_b[self.solve_slots].reshape(C, K)], axis=1)
 
+    @functools.cached_property
+    def slot_order(self) -> np.ndarray:
+        """(S,) the inverse of solve_slots: where each slot stands in solve order."""
+        return np.argsort(self.solve_slots).astype(np.int32)
+
+    @functools.cached_property
+    def write_back(self) -> np.ndarray:
+        """(C, M): after colour c is solved, body m's velocity is row write_back[c, m] of the body
+        velocities followed by the colour's 2K solved ones: M + p if the body is at position p of
+        solve_sides[c] (any one of them for a repeated static body: they all hold its unchanged
+        velocity), else m (the body is not in the colour).
+
+        A gather by this row is how the sweeps write a colour back: a scatter to the colour's 2K
+        bodies compiled to a loop over them on the CPU, about 100 small kernels per colour.
+        """
+        M = self.num_padded
+        rows = np.tile(np.arange(M, dtype=np.int32), (self.num_colours, 1))
+        for c, sides in enumerate(self.solve_sides):
+            rows[c, sides] = M + np.arange(len(sides), dtype=np.int32)
+        return rows
+
 
 def circle_method(m: int) -> tuple[np.ndarray, np.ndarray]:
     """(m - 1, m / 2) arrays a, b: round r pairs a[r, k] with b[r, k]; every pair appears once."""

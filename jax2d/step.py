@@ -224,19 +224,19 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedu
     h = d.h
     inv_h = 1.0 / h
 
-    def substep(_, carry):
+    def substep(i, carry):
         pose, vel, cimp, jimp = carry
         vel = integrate_velocities(vel, pose, d.dyn, d.inv_mass, d.inv_inertia, d.gravity, d.forces, h)
         frame = joint_solver.frame(d.joints, d.jc, pose)
         vel = joint_solver.warm_start(d.jc, frame, jimp, vel, plan=joints)
         vel = contact_solver.warm_start(layout, d.const, cimp, vel, plan=colours)
         vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=True, plan=joints)
-        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0)
+        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, i)
         vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
                                          d.max_push_velocity, use_bias=True, plan=colours)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(d.joints, d.jc, pose)
-        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0)
+        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, i)
         for _ in range(config.relax_iterations):
             vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=False,
                                            plan=joints)

@@ -2,6 +2,7 @@
 
 import itertools
 
+import numpy as np
 import pytest
 
 from jax2d.pairs import PADDING, contact_layout
@@ -64,3 +65,18 @@ def test_capacities_the_construction_does_not_fit_keep_the_round_robin() -> None
     layout = contact_layout(6, 3, 4)  # 10 bodies with the dummy: 4 walls and 6 others, or 5 and 5
     assert not layout.walls_repeat
     assert layout.solve_slots.tolist() == list(range(layout.num_slots))
+
+
+@pytest.mark.parametrize("num_static", [0, 4])
+@pytest.mark.parametrize("capacity", CAPACITIES)
+def test_write_back_puts_each_solved_velocity_at_its_body(capacity, num_static: int) -> None:
+    """The sweeps write a colour back by gathering from (bodies, solved sides) with write_back: every body
+    in the colour takes a solved row that belongs to it, every other body keeps its own."""
+    layout = contact_layout(*capacity, num_static)
+    M = layout.num_padded
+    assert sorted(layout.slot_order[layout.solve_slots].tolist()) == list(range(layout.num_slots))
+    assert (layout.slot_order[layout.solve_slots] == np.arange(layout.num_slots)).all()
+    for sides, rows in zip(layout.solve_sides, layout.write_back, strict=True):
+        taken = np.concatenate([np.arange(M), sides])[rows]  # the body each row came from
+        assert (taken == np.arange(M)).all()
+        assert set(np.nonzero(rows >= M)[0].tolist()) == set(sides.tolist())

@@ -133,6 +133,44 @@ def wall_grouped(num_padded: int, static: list[int]) -> np.ndarray | None:
     return np.array(colours, dtype=np.int32)
 
 
+def walls_whole(num_padded: int, static: list[int]) -> np.ndarray | None:
+    """Colours in which each always-static body's pairs with the others fill one colour, or None.
+
+    Applies where the D others are no more than K = num_padded / 2, which leaves at least K static
+    bodies. Like wall_grouped, (C, K, 2) body pairs covering every pair once. Construction: the
+    pairs among the others, as matchings (a round-robin of D bodies, or of D + 1 with a bye when D
+    is odd), one colour each; with D odd, each matching's left-out body is paired with the last
+    static body in that colour (each other body is left out once). Every other static body gets a
+    colour of its own holding its pairs with all D others. The pairs of two static bodies (never
+    solved) fill the free slots.
+    """
+    M = num_padded
+    static = list(static)
+    dynamic = [i for i in range(M) if i not in static]
+    D, K = len(dynamic), M // 2
+    if D == 0 or D > K:
+        return None
+    colours = []
+    if D % 2:
+        rounds_a, rounds_b = circle_method(D + 1)  # body D is the bye
+        for ra, rb in zip(rounds_a, rounds_b, strict=True):
+            colour = [(dynamic[x], dynamic[y]) for x, y in zip(ra, rb, strict=True) if D not in (x, y)]
+            left_out = next(int(x if y == D else y) for x, y in zip(ra, rb, strict=True) if D in (x, y))
+            colours.append(colour + [(static[-1], dynamic[left_out])])
+        whole = static[:-1]
+    else:
+        if D > 1:
+            rounds_a, rounds_b = circle_method(D)
+            colours += [[(dynamic[x], dynamic[y]) for x, y in zip(ra, rb, strict=True)]
+                        for ra, rb in zip(rounds_a, rounds_b, strict=True)]
+        whole = static
+    colours += [[(w, d) for d in dynamic] for w in whole]
+    free = iter([(x, y) for i, x in enumerate(static) for y in static[i + 1:]])
+    colours = [colour + [next(free) for _ in range(K - len(colour))] for colour in colours]
+    assert next(free, None) is None and len(colours) == M - 1
+    return np.array(colours, dtype=np.int32)
+
+
 def _solve_order(a: np.ndarray, b: np.ndarray, colours: np.ndarray) -> np.ndarray:
     """The slot of each pair of `colours` (C, K, 2), flattened: the permutation that visits them in that order."""
     slot = {(min(x, y), max(x, y)): i for i, (x, y) in enumerate(zip(a.tolist(), b.tolist(), strict=True))}
@@ -165,5 +203,7 @@ def contact_layout(num_polygons: int, num_circles: int, num_static: int = 0) -> 
         walls = list(range(num_static))
         options = [walls + [N], walls] if M > N else [walls]
         grouped = next((g for g in (wall_grouped(M, st) for st in options) if g is not None), None)
+        if grouped is None:
+            grouped = walls_whole(M, walls + list(range(N, M)))
     solve = np.arange(len(a), dtype=np.int32) if grouped is None else _solve_order(a, b, grouped)
     return ContactLayout(N, M, M - 1, M // 2, a, b, kind, by_kind, gather, solve, grouped is not None)

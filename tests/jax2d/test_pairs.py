@@ -51,7 +51,8 @@ def _colours_pairing(layout, body: int) -> set[int]:
     return found
 
 
-@pytest.mark.parametrize(("capacity", "floor_colours"), [((12, 4), 3), ((5, 2), 1), ((12, 12), 5)])
+@pytest.mark.parametrize(("capacity", "floor_colours"), [((12, 4), 3), ((5, 2), 1), ((12, 12), 5), ((6, 3), 1),
+                                                         ((6, 2), 1)])
 def test_wall_grouped_colours_put_the_floor_pairs_in_few_colours(capacity, floor_colours: int) -> None:
     """Why the layout exists: a body on the floor keeps the colour of its floor pair live in every sweep."""
     layout = contact_layout(*capacity, 4)
@@ -61,8 +62,10 @@ def test_wall_grouped_colours_put_the_floor_pairs_in_few_colours(capacity, floor
     assert len(_colours_pairing(plain, 0)) == plain.num_bodies - 4
 
 
-def test_capacities_the_construction_does_not_fit_keep_the_round_robin() -> None:
-    layout = contact_layout(6, 3, 4)  # 10 bodies with the dummy: 4 walls and 6 others, or 5 and 5
+def test_capacities_the_constructions_do_not_fit_keep_the_round_robin() -> None:
+    # 10 bodies: 4 walls and 6 others (wall_grouped needs an odd number of groups of 4, walls_whole
+    # at most 5 others)
+    layout = contact_layout(6, 4, 4)
     assert not layout.walls_repeat
     assert layout.solve_slots.tolist() == list(range(layout.num_slots))
 

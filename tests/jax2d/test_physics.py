@@ -533,6 +533,39 @@ def test_crowded_scenes_hold_with_the_walls_repeating_in_colours():
     assert max(gaps) < 0.01
 
 
+def test_bodies_land_on_the_floor_with_each_wall_whole_in_one_colour():
+    """The m capacity (6 polygons, 3 circles) with num_static=4: too few others for wall_grouped, so each
+    wall's pairs fill one colour (pairs.walls_whole). Boxes and balls dropped side by side come to rest on
+    the floor at their heights, as they do with the round-robin layout."""
+    m = jax2d.Capacity(polygons=6, circles=3, joints=2, thrusters=2)
+    config = jax2d.SolverConfig(num_static=4)
+    layout = contact_layout(m.polygons, m.circles, 4)
+    assert layout.walls_repeat
+    K, N = layout.per_colour, layout.num_bodies
+    floor_colours = {c for c, sides in enumerate(layout.solve_sides.tolist())
+                     for a, b in zip(sides[:K], sides[K:], strict=True) if 0 in (a, b) and 4 <= a + b < N}
+    state, _ = scene.add_rectangle(jax2d.empty_state(m), (0.0, -0.5), 10.0, 1.0, fixed=True)  # top at y = 0
+    for x in (-5.5, 5.5):
+        state, _ = scene.add_rectangle(state, (x, 3.0), 1.0, 8.0, fixed=True)
+    state, _ = scene.add_rectangle(state, (0.0, 7.5), 10.0, 1.0, fixed=True)
+    rest = []
+    for x, size in ((-3.0, 0.8), (-1.5, 0.5)):
+        state, _ = scene.add_rectangle(state, (x, 1.0 + x * 0.1), size, size)
+        rest.append(size / 2)
+    for x, radius in ((0.5, 0.3), (2.0, 0.2), (3.5, 0.4)):
+        state, _ = scene.add_circle(state, (x, 1.5), radius)
+        rest.append(radius)
+    plain, _ = rollout(state, PARAMS, 240)
+    walls, _ = rollout(state, PARAMS, 240, config=config)
+    for final in (plain, walls):
+        y = np.asarray(final.bodies.position)[4:, 1]
+        assert np.all(np.isfinite(y))
+        np.testing.assert_allclose(y, rest, atol=0.005)
+        assert np.abs(np.asarray(final.bodies.velocity)[4:]).max() < 0.05
+    np.testing.assert_allclose(np.asarray(walls.bodies.position), np.asarray(plain.bodies.position), atol=0.005)
+    assert len(floor_colours) == 1  # all 5 bodies' floor contacts are solved in one colour
+
+
 # ---------------------------------------------------------------- 10-11. batching and determinism
 
 

@@ -39,17 +39,12 @@ def rotate(c, s, x, y):
     return c * x - s * y, s * x + c * y
 
 
-def pick(sel, x):
-    """x at the body a one-hot row selects: sel and x (M, *batch) -> (*batch).
-
-    A masked sum rather than `sel @ x` so it also works on batch-last arrays (step.py).
-    Only one term is non-zero, so the result is exact.
-    """
-    return jnp.sum(sel * x, axis=0)
-
-
 def pick_rows(sel, x):
-    """Row by row `pick`: sel (R, M, *batch), x (M, *batch) -> (R, *batch)."""
+    """x at the body each one-hot row selects: sel (R, M, *batch), x (M, *batch) -> (R, *batch).
+
+    A masked sum rather than `sel @ x` so it also works on batch-last arrays (step.py). Only one
+    term of each row is non-zero, so the result is exact.
+    """
     return jnp.sum(sel * x[None], axis=1)
 
 

@@ -311,6 +311,17 @@ def _for_points(points, row: int, accumulated, push, vels, lam):
     return vels, lam
 
 
+def _push(c: _Block, kind: str, row: int, k: int, vels, lam, new, track_max: bool = False):
+    """Apply point k's new accumulated impulse `new` of impulse row `row + k` (its normal or tangent, `kind`):
+    the velocities change by the push rows times the difference, the row takes `new`, and with
+    `track_max` the point's largest normal impulse so far is kept (restitution reads it)."""
+    impulse = new - lam[row + k]
+    rows = {row + k: new}
+    if track_max:
+        rows[_MAX + k] = jnp.maximum(lam[_MAX + k], impulse)
+    return vels + c.push(kind, k) * impulse[None], _with_rows(lam, rows)
+
+
 def _velocity_along(c: _Block, k: int, vels, dx, dy):
     """Relative velocity at point k along (dx, dy)."""
     va, vb = _sides(vels)
@@ -356,23 +367,16 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         old = lam[_N + k]
         return jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old, 0.0)
 
-    def push_normal(c: _Block, k, vels, lam, new):
-        impulse = new - lam[_N + k]
-        return (vels + c.push("normal", k) * impulse[None],
-                _with_rows(lam, {_N + k: new, _MAX + k: jnp.maximum(lam[_MAX + k], impulse)}))
-
     def friction(c: _Block, k, vels, lam):
         vt = _velocity_along(c, k, vels, c.ny, -c.nx)
         limit = c.friction * lam[_N + k]
         return jnp.clip(lam[_T + k] - c.point("tmass", k) * vt, -limit, limit)
 
-    def push_friction(c: _Block, k, vels, lam, new):
-        return vels + c.push("tangent", k) * (new - lam[_T + k])[None], _with_rows(lam, {_T + k: new})
-
     def solve_colour(vels, lam, points, c: _Block, sep: _Rows):
-        vels, lam = _for_points(points, _N, functools.partial(normal, c, sep), functools.partial(push_normal, c),
-                                vels, lam)
-        return _for_points(points, _T, functools.partial(friction, c), functools.partial(push_friction, c), vels, lam)
+        vels, lam = _for_points(points, _N, functools.partial(normal, c, sep),
+                                functools.partial(_push, c, "normal", _N, track_max=True), vels, lam)
+        return _for_points(points, _T, functools.partial(friction, c), functools.partial(_push, c, "tangent", _T),
+                           vels, lam)
 
     return _sweep(layout, vel, solve_colour, const, impulses, plan, separation)
 
@@ -391,11 +395,9 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, threshold, pla
         old = lam[_N + k]
         return jnp.maximum(old + jnp.where(hit, -c.point("nmass", k) * (vn + c.restitution * rel), 0.0), 0.0)
 
-    def push(c: _Block, k, vels, lam, new):
-        return vels + c.push("normal", k) * (new - lam[_N + k])[None], _with_rows(lam, {_N + k: new})
-
     def solve_colour(vels, lam, points, c: _Block):
-        return _for_points(points, _N, functools.partial(bounce, c), functools.partial(push, c), vels, lam)
+        return _for_points(points, _N, functools.partial(bounce, c), functools.partial(_push, c, "normal", _N), vels,
+                           lam)
 
     # Most steps bounce nowhere in the batch; then the sweep would change nothing (every impulse
     # stays as it is), so it is skipped: a few hundred small kernels per step at a small batch.

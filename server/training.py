@@ -293,6 +293,8 @@ class TrainingPool:
             elif kind == "error":
                 job.error = body
                 break
+        if job._cancel.is_set() and process.is_alive():  # cancelled before its process existed to terminate
+            process.terminate()
         process.join(timeout=30)
         if process.is_alive():
             process.kill()

@@ -368,9 +368,9 @@ class AgentLink:
         tab.local.clear()
 
     def _show_progress(self, session, job: TrainingJob, owner: RunOwner | None = None) -> None:
-        if session is None or session.closed:
-            if (owner is None or owner.level_id is None) and self.pool is not None:  # nobody can use it any more
-                self.pool.cancel(job)
+        if session is None or session.closed:  # tab_closed decided the run's fate (it may bind a saved copy's)
+            if session is None and (owner is None or owner.level_id is None) and self.pool is not None:
+                self.pool.cancel(job)  # a safety net: a collected tab was closed first
             return
         tab = self.tab(session)
         if tab.job is not job:

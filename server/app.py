@@ -44,6 +44,8 @@ class Config:
     agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
     warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
     max_training_runs: int = 1  # training worker processes at once; more runs queue
+    max_training_queue: int = 8  # training runs waiting in all; beyond it "Train" is refused (queue full)
+    max_training_per_client: int = 1  # runs of one client (author identity, else tab) running at once
     train_steps: int = 100_000  # the default of a tab's "Training steps"
     train_options: dict = dataclasses.field(default_factory=dict)  # e.g. {"config": {"num_envs": 8}} (tests)
     train_worker: object = None  # the training worker function (tests swap in a cheap one); default train_worker
@@ -87,6 +89,11 @@ class App:
             raise ValueError(f"--max-sessions must be at least 1, got {self.config.max_sessions}")
         if self.config.max_training_runs < 1:
             raise ValueError(f"--max-training-runs must be at least 1, got {self.config.max_training_runs}")
+        if self.config.max_training_per_client < 1:
+            raise ValueError("--max-training-per-client must be at least 1, got "
+                             f"{self.config.max_training_per_client}")
+        if self.config.max_training_queue < 0:
+            raise ValueError(f"--max-training-queue cannot be negative, got {self.config.max_training_queue}")
         # Bind the user's port first so a busy port fails loudly (viser would silently take the next one).
         sock = socket.socket(socket.AF_INET6 if ":" in self.config.host else socket.AF_INET)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -196,7 +203,9 @@ class App:
         from server.agent_tab import AgentLink
         from server.training import TrainingPool, train_worker
 
-        self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker)
+        self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker,
+                                     max_queued=self.config.max_training_queue,
+                                     per_client=self.config.max_training_per_client)
         data_dir = Path(self.config.data) if self.config.data else default_data_dir()
         self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,
                                 train_steps=self.config.train_steps, train_options=self.config.train_options)
@@ -235,7 +244,9 @@ def serve(args) -> int:
     config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
                     db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
                     warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"),
-                    record=getattr(args, "record", True), max_training_runs=getattr(args, "max_training_runs", 1))
+                    record=getattr(args, "record", True), max_training_runs=getattr(args, "max_training_runs", 1),
+                    max_training_queue=getattr(args, "max_training_queue", 8),
+                    max_training_per_client=getattr(args, "max_training_per_client", 1))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

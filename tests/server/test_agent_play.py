@@ -164,10 +164,11 @@ def test_race_agent_wins_when_the_human_fires_the_thruster(app, make_client):
 
 def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app, make_client, tmp_path):
     FAKE_TRAINING["release"] = str(tmp_path / "release")
-    level_id, _ = app.store.create_level("train me", to_document(build(falling_win_spec())))
+    level_id, token = app.store.create_level("train me", to_document(build(falling_win_spec())))
     first_client, second_client = make_client(app), make_client(app)
     first, _ = _session(app, first_client)
     second, _ = _session(app, second_client)
+    first.author_token = token  # the level's author (the browser sends its token with the /keys hello)
     GalleryLink(app.store).open(first, level_id)
     first_job = app.agents.train(first, steps=4000)
     second_job = app.agents.train(second, steps=4000)  # a new, unsaved level: its specialist lives with the tab
@@ -234,9 +235,10 @@ def test_watch_refuses_a_missing_specialist_with_a_message(app, make_client):
 def test_a_tiny_real_training_attaches_a_specialist_that_watch_agent_plays(app, make_client):
     from server.training import TrainingPool
 
-    level_id, _ = app.store.create_level("tiny training", to_document(build(falling_win_spec())))
+    level_id, token = app.store.create_level("tiny training", to_document(build(falling_win_spec())))
     client = make_client(app)
     session, _ = _session(app, client)
+    session.author_token = token
     GalleryLink(app.store).open(session, level_id)
     pool = TrainingPool(max_running=1)  # the real worker: kinetix.agents.train_agent in a spawned process
     link = AgentLink(store=app.store, agents_dir=app.agents.agents_dir, pool=pool,
@@ -292,10 +294,11 @@ def test_training_refuses_bad_step_counts(app, make_client):
 
 def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tmp_path):
     FAKE_TRAINING["release"] = str(tmp_path / "release")
-    level_id, _ = app.store.create_level("keeps training", to_document(build(falling_win_spec())))
+    level_id, token = app.store.create_level("keeps training", to_document(build(falling_win_spec())))
     keeper, leaver = make_client(app), make_client(app)
     kept, _ = _session(app, keeper)
     left, _ = _session(app, leaver)
+    kept.author_token = token
     GalleryLink(app.store).open(kept, level_id)
     kept_job = app.agents.train(kept, steps=4000)
     left_job = app.agents.train(left, steps=4000)  # unsaved level, queued behind the first
@@ -304,7 +307,7 @@ def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tm
     _wait(lambda: left.closed)
     (tmp_path / "release").touch()
     assert kept_job.settled.wait(60) and left_job.settled.wait(60)
-    assert kept_job.state == "done", "a gallery level's run goes on: its specialist is attached for everyone"
+    assert kept_job.state == "done", "its author's run goes on: its specialist is attached for everyone"
     assert left_job.state == "cancelled" and not left_job.out_dir.exists()
     assert len(app.agents.level_agents.list(level_id)) == 1
 
@@ -334,13 +337,14 @@ def test_a_specialist_attaches_to_a_level_whose_id_starts_with_a_dash(app, make_
 
     FAKE_TRAINING["release"] = str(tmp_path / "release")
     (tmp_path / "release").touch()
-    source, _ = app.store.create_level("dash", to_document(build(falling_win_spec())))
+    source, token = app.store.create_level("dash", to_document(build(falling_win_spec())))
     with app.store._write() as conn:  # gallery ids are url-safe base64: '-' and '_' can come first
         conn.execute(text("INSERT INTO levels (id, name, description, author_id, created, updated, parent_id, size, "
                           "level_json, thumbnail) SELECT '-dash-first', name, description, author_id, created, "
                           "updated, NULL, size, level_json, thumbnail FROM levels WHERE id = :src"), {"src": source})
     client = make_client(app)
     session, _ = _session(app, client)
+    session.author_token = token
     GalleryLink(app.store).open(session, "-dash-first")
     job = app.agents.train(session, steps=4000)
     assert job.settled.wait(60) and job.state == "done"

@@ -63,3 +63,18 @@ def test_serve_parses_the_training_cap_and_refuses_zero(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["serve", "--max-training-runs", "0"])
     assert "max-training-runs" in capsys.readouterr().err
+
+
+def test_serve_parses_the_training_queue_and_per_client_limits(capsys):
+    import pytest
+
+    from kinetix.cli import build_parser
+
+    defaults = build_parser().parse_args(["serve"])
+    assert (defaults.max_training_queue, defaults.max_training_per_client) == (8, 1)
+    args = build_parser().parse_args(["serve", "--max-training-queue", "0", "--max-training-per-client", "2"])
+    assert (args.max_training_queue, args.max_training_per_client) == (0, 2)
+    for option, bad in (("--max-training-queue", "-1"), ("--max-training-per-client", "0")):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["serve", option, bad])
+        assert option.lstrip("-") in capsys.readouterr().err

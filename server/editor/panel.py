@@ -230,7 +230,7 @@ class EditorPanel:
             self.tool_line.content = f"**Tool:** {ed.tool}" + (" — click vertices, Enter to finish"
                                                                  if ed.tool in ("triangle", "polygon") else "")
             self.message.content = f"⚠ {ed.message}" if ed.message else ""
-            self.grow_button.visible = ed.size_offer is not None
+            self.grow_button.visible = ed.size_offer is not None and ed.message is not None
             if ed.size_offer is not None:
                 self.grow_button.label = f"Move to size {ed.size_offer}"
             self.limits_line.content = "**Left:** " + ", ".join(

@@ -63,9 +63,10 @@ class Editor:
         self._file_revision = 0
         self.revision = 0
         self.history = History()
-        # True until the first edit: the level the tab started with, which nobody has seen change. A level opened
-        # over it (a gallery link, an upload) becomes the history's base, so undo never goes back to it.
-        self._untouched = True
+        # The level the editor started with. While it is still shown, unchanged (the very same object: every edit,
+        # undo or restored draft replaces self.spec), a level opened over it (a gallery link, an upload) becomes the
+        # history's base, so undo never goes back to that blank or default level.
+        self._start_spec = spec
         self.tool = "select"
         self.selection: list[tuple[str, int]] = []
         self.snapping = True
@@ -116,7 +117,6 @@ class Editor:
         except LevelError as error:
             return self._say(str(error))
         self.history.record(before or self._snapshot())
-        self._untouched = False
         self.spec, self.size, self._file, self._file_revision = candidate, size, file, self.revision + 1
         if selection is not None:
             self.selection = selection
@@ -621,7 +621,7 @@ class Editor:
         does not go back to the blank level); over an edited or opened level it is one undo step back to that."""
         spec, size = levelio.parse(data, filename)
         self._cancel()
-        base = self._untouched
+        base = self.spec is self._start_spec and not self.can_undo and not self.can_redo
         if refusal := self._commit(spec, size, selection=[]):
             raise EditorError(refusal)
         if base:

@@ -38,7 +38,8 @@ def viser_index_html() -> str:
 def inject(page: str, viser_port: int) -> str:
     """The viser page with our configuration, frame display and key script right after <head>."""
     snippet = (f"<script>window.__KINETIX__ = {json.dumps({'viserPort': viser_port})};</script>"
-               '<script src="/static/frames.js"></script><script src="/static/keys.js"></script>')
+               '<script src="/static/frames.js"></script><script src="/static/keys.js"></script>'
+               '<script src="/static/labels.js"></script>')  # ties viser's labels to their inputs
     head = page.find("<head>")
     if head < 0:
         raise ValueError("viser's index.html has no <head>; cannot inject the key script")

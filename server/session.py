@@ -321,6 +321,8 @@ class Session:
             if self.closed:
                 return
             self.last_key_seq = max(self.last_key_seq, seq)
+            if self.mode == "replay" and self.replay is not None and kind == "down" and self.replay.on_key(code, shift):
+                return  # ←/→ step the replay (server.replay)
             if kind == "down" and code == "Space" and not (ctrl or alt or meta):
                 self.toggle_play()
                 return

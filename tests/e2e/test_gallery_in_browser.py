@@ -34,10 +34,15 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         page, session = tab.page, tab.session
         page.get_by_role("button", name="Save to gallery", exact=True).click()
         dialog = page.get_by_role("dialog")
-        dialog.locator("input").first.fill("E2E <i>falling</i> win")
+        # Every field of the dialog is found by its label (viser's labels tied to the inputs by labels.js).
+        dialog.get_by_label("Name", exact=True).fill("E2E <i>falling</i> win")
+        dialog.get_by_label("Description", exact=True).fill("a ball falls")
+        dialog.get_by_label("Tags (comma-separated)", exact=True).fill("e2e, falls")
         dialog.get_by_role("button", name="Save", exact=True).click()
         _wait(lambda: session.gallery_id is not None)
         level_id = session.gallery_id
+        saved = app.store.get_level(level_id)
+        assert (saved["description"], saved["tags"]) == ("a ball falls", ["e2e", "falls"])
         # The author token the save issued reaches the page's localStorage, where the gallery page reads it.
         _wait(lambda: page.evaluate("localStorage.getItem('kinetix.author_token')") == session.author_token)
 

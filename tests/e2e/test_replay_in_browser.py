@@ -68,6 +68,13 @@ def test_watch_best_run_opens_the_replay_and_its_frames_change(browser, app):
         _wait(lambda: replay.shown_step == -1)
         time.sleep(0.5)
         first = gallery.screenshot(timeout=60_000)
+        # The slider (named by its label) takes arrow keys when it has the focus; its value counts steps done.
+        slider = gallery.get_by_role("slider", name="Replay step")
+        slider.focus()
+        gallery.keyboard.press("ArrowRight")
+        _wait(lambda: replay.shown_step == 0)
+        gallery.wait_for_function("document.querySelector('[role=slider]').getAttribute('aria-valuenow') === '1'")
+        assert slider.get_attribute("aria-valuemax") == str(replay.last + 1)
         replay.seek(replay.last)
         _wait(lambda: replay.shown_step == replay.last)
         time.sleep(0.5)

@@ -84,6 +84,21 @@ def test_level_link_opens_and_plays_and_the_finished_play_is_recorded(app, make_
         keys.close()
 
 
+def test_ctrl_z_right_after_a_level_link_keeps_the_opened_level(app, make_client):
+    level_id, _ = app.store.create_level("falling win", _falling_win_document())
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce, query=f"?level={level_id}")
+    try:
+        _wait(lambda: session.gallery_id == level_id)
+        opened = session.editor.export("ours")
+        seq = keys.down("KeyZ", "z", ctrl=True)
+        _wait(lambda: session.last_key_seq >= seq)
+        assert session.editor.export("ours") == opened  # not the blank level the tab started with
+    finally:
+        keys.close()
+
+
 def test_unknown_level_link_leaves_the_tab_editing_its_level(app, make_client):
     client = make_client(app)
     session, nonce = _session(app, client)

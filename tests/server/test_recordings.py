@@ -226,10 +226,15 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
     assert replay.step < recording.num_steps - 1, "paused before the end (the run lasts 2 s at 1x)"
     _wait(lambda: any(e.get("label") == "Play replay" for e in client.gui().values()))
     slider = client.find_gui("Replay step")
-    assert slider["max"] == recording.num_steps - 1
+    # The slider counts steps done, 0 (the start) to N, like the HUD's "step k/N"; recording step k-1 is shown.
+    assert (slider["min"], slider["max"]) == (0, recording.num_steps)
+    folders = [e for e in client.gui().values() if e["type"] == "GuiFolderMessage"]
+    timeline = next(e for e in folders if e["label"] == "Replay")
+    assert timeline["visible"] and timeline["order"] < min(  # at the top of the panel, above the editor's folders
+        e["order"] for e in folders if e["uuid"] != timeline["uuid"])
     for step in (3, recording.num_steps - 1, 0):
         before = client.count()
-        client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": step})
+        client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": step + 1})
         _wait(lambda step=step: replay.shown_step == step)
         client.wait_frame(before)
         # What is drawn is the recorded state of that step (no re-simulation).
@@ -237,9 +242,23 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
         assert np.array_equal(replay._scene.position, np.asarray(level.sim.bodies.position))
         assert np.array_equal(replay._scene.angle, np.asarray(level.sim.bodies.angle))
         assert np.array_equal(replay._scene.position[recording.bodies], recording.position[step])
+    # ←/→ step the replay one step (Shift: 10), and the slider follows; at the start it stays at 0.
+    keys = KeysSocket(app.port, nonce)
+    try:
+        keys.down("ArrowRight")
+        _wait(lambda: replay.shown_step == 1)
+        _wait(lambda: client.find_gui("Replay step")["value"] == 2)
+        keys.up("ArrowRight")
+        keys.down("ArrowLeft", shift=True)
+        _wait(lambda: replay.shown_step == -1)
+        _wait(lambda: client.find_gui("Replay step")["value"] == 0)
+        keys.up("ArrowLeft", shift=True)
+    finally:
+        keys.close()
+    assert session.mode == "replay" and not replay.playing
     first = _frame(client.frames()[-1])
     before = client.count()
-    client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": recording.num_steps - 1})
+    client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": recording.num_steps})
     _wait(lambda: replay.shown_step == recording.num_steps - 1)
     last = _frame(client.wait_frame(before))
     assert np.abs(first - last).mean() > 0.5, "the car moved between the first and the last step"

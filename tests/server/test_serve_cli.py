@@ -78,3 +78,16 @@ def test_serve_parses_the_training_queue_and_per_client_limits(capsys):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["serve", option, bad])
         assert option.lstrip("-") in capsys.readouterr().err
+
+
+def test_make_serve_passes_args_to_the_server():
+    import shutil
+
+    import pytest
+
+    if shutil.which("make") is None:
+        pytest.skip("no make")
+    # -n prints the commands without running them (nor building .venv).
+    out = subprocess.run(["make", "-n", "serve", "ARGS=--port 9000 --data /tmp/k"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=30, check=True).stdout
+    assert ".venv/bin/kinetix serve --port 9000 --data /tmp/k\n" in out, out

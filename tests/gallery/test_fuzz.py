@@ -11,6 +11,7 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+from server.gallery.limits import RateLimits
 from server.gallery.store import Store
 from tests.gallery.conftest import level_doc
 
@@ -40,7 +41,8 @@ def fuzz_client(tmp_path_factory):
     from server.gallery.app import create_gallery_app
 
     store = Store(f"sqlite:///{tmp_path_factory.mktemp('fuzz') / 'g.sqlite3'}", seed_dir=None)
-    with TestClient(create_gallery_app(store, admin_token="adm")) as client:
+    with TestClient(create_gallery_app(store, admin_token="adm", limits=RateLimits(0, 0)),
+                    base_url="http://localhost") as client:
         made = client.post("/api/levels", json={"name": "fuzz", "level": level_doc()}).json()
         client.calls = 0
         yield client, made

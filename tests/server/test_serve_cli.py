@@ -65,7 +65,6 @@ def test_serve_refuses_a_busy_port(tmp_path):
 
 
 def test_serve_parses_the_training_cap_and_refuses_zero(capsys):
-
     from kinetix.cli import build_parser
 
     args = build_parser().parse_args(["serve", "--max-training-runs", "2"])

@@ -8,7 +8,7 @@ import pytest
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab
+from tests.e2e.conftest import Tab, wait_js
 from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
@@ -43,6 +43,7 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
 
         gallery = tab.context.new_page()
         gallery.on("request", lambda request: tab.requests.append(request.url))
+        tab.watch_csp(gallery)
         gallery.goto(app.url + "gallery")
         card = gallery.locator("article.card", has_text="E2E <i>falling</i> win")
         card.wait_for(timeout=30_000)
@@ -50,7 +51,7 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         assert card.locator(".plays").inner_text() == "0"
 
         card.locator("a.play").click()
-        gallery.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(gallery, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         nonce = gallery.get_attribute("#kinetix-session", "data-nonce")
         player = app.manager.session_by_nonce(nonce)
         _wait(lambda: player.gallery_id == level_id)
@@ -63,6 +64,17 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         card.wait_for(timeout=30_000)
         assert card.locator(".plays").inner_text() == "1"
         assert card.locator(".human").inner_text() == "100%"
+
+        # A vote from the page passes the JSON and Origin checks, twice counts once (the voter cookie), and the
+        # page's author token (from the save) is the voter.
+        card.locator(".up").click()
+        _wait(lambda: app.store.stats(level_id)["votes_up"] == 1)
+        card = gallery.locator("article.card", has_text="E2E <i>falling</i> win")
+        card.locator(".up").click()  # toggles the vote off: value 0
+        _wait(lambda: app.store.stats(level_id)["votes_up"] == 0)
+        gallery.locator("article.card", has_text="E2E <i>falling</i> win").locator(".up").click()
+        _wait(lambda: app.store.stats(level_id)["votes_up"] == 1)
+        assert gallery.locator("#status").inner_text() == ""  # no "Vote failed"
         tab.assert_local_only()
     finally:
         tab.close()

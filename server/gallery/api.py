@@ -216,10 +216,10 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
     async def create_level(request: Request) -> dict:
         limited(limits, "write", request)
         token = user_token(request)
-        if token is None:
-            limited(limits, "identity", request)  # a new author
         data = await read_json(request, {"name": True, "description": False, "tags": False, "level": True,
                                          "parent": False})
+        if token is None:
+            limited(limits, "identity", request)  # a new author
         level_id, new_token = await call(store.create_level, data["name"], data["level"],
                                          description=data.get("description", ""), tags=data.get("tags", []),
                                          token=token, parent=data.get("parent"))
@@ -266,7 +266,7 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
         token = user_token(request)
         data = await read_json(request, {"value": True})
         value = data["value"]
-        if not isinstance(value, int) or isinstance(value, bool):
+        if not isinstance(value, int) or isinstance(value, bool) or value not in (-1, 0, 1):
             raise HTTPException(422, "value: expected 1 (up), -1 (down) or 0 (withdraw)")
         if token is None:
             cookie = request.cookies.get(VOTER_COOKIE)

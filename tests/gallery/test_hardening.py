@@ -96,10 +96,18 @@ def test_unknown_voter_cookie_starts_a_new_voter(client, store):
     assert client.post(f"/api/levels/{level_id}/vote", json={"value": 1}).json()["up"] == 1  # the new cookie
 
 
-def test_a_vote_on_an_unknown_level_spends_no_identity(client, store):
-    before = store.counts()
-    assert client.post("/api/levels/nope/vote", json={"value": 1}).status_code == 404
-    assert store.counts() == before
+def test_refused_requests_spend_no_identity(store):
+    with make_client(store, limits=RateLimits(writes_per_minute=0, identities_per_hour=1)) as client:
+        level_id, _ = store.create_level("by the library", level_doc())
+        assert client.post("/api/levels/nope/vote", json={"value": 1}).status_code == 404
+        assert client.post(f"/api/levels/{level_id}/vote", json={"value": 2}).status_code == 422
+        assert client.post(f"/api/levels/{level_id}/vote", content=b'{"value": 1}').status_code == 415
+        assert client.post("/api/levels", content=b"{not json", headers={
+            "Content-Type": "application/json"}).status_code == 400
+        assert store.counts()["authors"] == 1
+        assert client.post(f"/api/levels/{level_id}/vote", json={"value": 1}).status_code == 200  # the one identity
+        client.cookies.clear()
+        assert client.post(f"/api/levels/{level_id}/vote", json={"value": 1}).status_code == 429
 
 
 # ---- §3 content types and cross-site requests

@@ -75,6 +75,27 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         gallery.locator("article.card", has_text="E2E <i>falling</i> win").locator(".up").click()
         _wait(lambda: app.store.stats(level_id)["votes_up"] == 1)
         assert gallery.locator("#status").inner_text() == ""  # no "Vote failed"
+
+        # A visitor without an author token votes as the voter cookie the server issues (HttpOnly: the page's
+        # scripts cannot read it); voting again from the same browser changes that one vote.
+        visitor = tab.context.browser.new_context()
+        try:
+            page = visitor.new_page()
+            tab.watch_csp(page)
+            page.on("request", lambda request: tab.requests.append(request.url))
+            page.goto(app.url + "gallery")
+            theirs = page.locator("article.card", has_text="E2E <i>falling</i> win")
+            theirs.locator(".up").click()
+            _wait(lambda: app.store.stats(level_id)["votes_up"] == 2)
+            cookie = next(c for c in visitor.cookies() if c["name"] == "kinetix_voter")
+            assert cookie["httpOnly"] and cookie["sameSite"] == "Strict" and cookie["path"] == "/api"
+            assert page.evaluate("document.cookie") == "" and page.evaluate(
+                "localStorage.getItem('kinetix.author_token')") is None
+            page.locator("article.card", has_text="E2E <i>falling</i> win").locator(".down").click()
+            _wait(lambda: app.store.stats(level_id)["votes_down"] == 1)
+            assert app.store.stats(level_id)["votes_up"] == 1  # the visitor's up-vote became their down-vote
+        finally:
+            visitor.close()
         tab.assert_local_only()
     finally:
         tab.close()

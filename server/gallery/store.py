@@ -243,8 +243,9 @@ def check_document_text(field: str, value: Any, depth: int = 0) -> None:
             raise Invalid(f"{field}: contains a lone UTF-16 surrogate; text must be valid Unicode") from None
     elif isinstance(value, dict):
         for key, item in value.items():
-            check_document_text(f"{field}.{str(key).encode('utf-8', 'replace').decode()}", key, depth + 1)
-            check_document_text(f"{field}.{str(key).encode('utf-8', 'replace').decode()}", item, depth + 1)
+            path = f"{field}.{str(key).encode('utf-8', 'replace').decode()}"  # printable even if the key is not
+            check_document_text(path, key, depth + 1)
+            check_document_text(path, item, depth + 1)
     elif isinstance(value, list):
         for i, item in enumerate(value):
             check_document_text(f"{field}[{i}]", item, depth + 1)

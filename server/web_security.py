@@ -10,7 +10,8 @@
   403. Browsers always send `Origin` with these; non-browser clients (curl, scripts) send none and pass.
 - **Headers** on every HTTP answer (pages, static files, the API): `X-Content-Type-Options: nosniff`, a
   Content-Security-Policy whose `frame-ancestors 'self'` stops other sites framing the app (clickjacking), the same
-  as `X-Frame-Options` for old browsers, and `Referrer-Policy: same-origin`.
+  as `X-Frame-Options` for old browsers, and `Referrer-Policy: same-origin`. FastAPI's /docs and /redoc pages get a
+  policy that also allows the CDNs they load from.
 
 The CSP fits viser's page: its loader is an inline script that decompresses the client with WebAssembly and adds it
 as an inline module, the client uses blob: workers and data:/blob: images, and it talks to viser's websocket on
@@ -39,12 +40,26 @@ CONTENT_SECURITY_POLICY = "; ".join([
     "form-action 'self'",
     "frame-ancestors 'self'",
 ])
-SECURITY_HEADERS = [
+# FastAPI's /docs (Swagger UI) and /redoc pages load their code, styles, fonts and icon from public CDNs.
+DOCS_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")
+DOCS_CONTENT_SECURITY_POLICY = "; ".join([
+    "default-src 'self'",
+    "script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net",
+    "style-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net https://fonts.googleapis.com",
+    "font-src 'self' data: https://fonts.gstatic.com",
+    "img-src 'self' data: https://fastapi.tiangolo.com https://cdn.redoc.ly",
+    "worker-src 'self' blob:",
+    "object-src 'none'",
+    "base-uri 'self'",
+    "frame-ancestors 'self'",
+])
+COMMON_HEADERS = [
     (b"x-content-type-options", b"nosniff"),
-    (b"content-security-policy", CONTENT_SECURITY_POLICY.encode()),
     (b"x-frame-options", b"SAMEORIGIN"),
     (b"referrer-policy", b"same-origin"),
 ]
+SECURITY_HEADERS = [*COMMON_HEADERS, (b"content-security-policy", CONTENT_SECURITY_POLICY.encode())]
+DOCS_HEADERS = [*COMMON_HEADERS, (b"content-security-policy", DOCS_CONTENT_SECURITY_POLICY.encode())]
 
 
 def allowed_hosts_for(bind: str, extra: Iterable[str] | None = None) -> frozenset[str]:
@@ -113,11 +128,13 @@ class WebSecurity:
             await self.app(scope, receive, send)
             return
 
+        extra = DOCS_HEADERS if scope.get("path") in DOCS_PATHS else SECURITY_HEADERS
+
         async def send_with_headers(message) -> None:
             if message["type"] == "http.response.start":
                 present = {k.lower() for k, _ in message.get("headers", [])}
                 message["headers"] = list(message.get("headers", [])) + [
-                    (k, v) for k, v in SECURITY_HEADERS if k not in present]
+                    (k, v) for k, v in extra if k not in present]
             await send(message)
 
         await self.app(scope, receive, send_with_headers)

@@ -38,6 +38,9 @@ def test_headers_on_the_page_static_files_and_errors(client):
         assert "frame-ancestors 'self'" in csp and "object-src 'none'" in csp, url
         assert headers["referrer-policy"] == "same-origin", url
     assert "keys.js" in client.get("/").text  # the page itself is unchanged
+    docs = client.get("/docs").headers["content-security-policy"]  # Swagger UI loads from its CDN
+    assert "https://cdn.jsdelivr.net" in docs and "frame-ancestors 'self'" in docs
+    assert "cdn.jsdelivr.net" not in client.get("/").headers["content-security-policy"]
 
 
 @pytest.mark.parametrize("host,status", [("127.0.0.1:8080", 200), ("localhost:1", 200), ("kinetix.test", 200),

@@ -199,6 +199,9 @@ def test_serve_options_reach_the_server():
         ["kinetix.lan", "192.168.1.20:8080"], 5.0, 0.0)
     defaults = parser.parse_args([])
     assert defaults.allowed_hosts == [] and defaults.write_limit is None and defaults.identity_limit is None
+    helped = " ".join(parser.format_help().split())  # the defaults the help states are RateLimits' own
+    assert f"minute per client address; 0 = no limit (default: {RateLimits().writes_per_minute:g})" in helped
+    assert f"per client address; 0 = no limit (default: {RateLimits().identities_per_hour:g})" in helped
     hosts = allowed_hosts_for("0.0.0.0", args.allowed_hosts)
     assert hosts == {"localhost", "127.0.0.1", "::1", "kinetix.lan", "192.168.1.20"}
 

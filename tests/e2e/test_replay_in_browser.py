@@ -10,7 +10,7 @@ from viser_client import KeysSocket, ViserTestClient, session_nonce
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab
+from tests.e2e.conftest import Tab, wait_js
 from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
@@ -57,7 +57,7 @@ def test_watch_best_run_opens_the_replay_and_its_frames_change(browser, app):
         button.click()
         # keys.js adds &websocket=; 60 s as below: the server may still be compiling on a cold cache
         gallery.wait_for_url(f"**/?level={level_id}&mode=replay*", timeout=60_000)
-        gallery.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(gallery, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         session = app.manager.session_by_nonce(gallery.get_attribute("#kinetix-session", "data-nonce"))
         _wait(lambda: session.mode == "replay" and session.replay is not None)
         replay = session.replay
@@ -93,7 +93,7 @@ def test_keyboard_play_then_download_recording_gives_the_browser_a_valid_file(br
     try:
         page = tab.page
         page.goto(app.url + f"?level={level_id}")
-        page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(page, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         session = app.manager.session_by_nonce(page.get_attribute("#kinetix-session", "data-nonce"))
         _wait(lambda: session.gallery_id == level_id)
         page.mouse.click(900, 400)  # focus the page

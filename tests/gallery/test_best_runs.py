@@ -72,7 +72,7 @@ def test_api_serves_the_best_run_or_a_404_with_a_message(runs, tmp_path):
     from server.gallery.app import create_gallery_app
 
     level_id, _ = runs.store.create_level("lvl", level_doc())
-    with TestClient(create_gallery_app(runs.store)) as client:
+    with TestClient(create_gallery_app(runs.store), base_url="http://localhost") as client:
         missing = client.get(f"/api/levels/{level_id}/best-run.mcap")
         assert missing.status_code == 404 and "no recorded best run" in missing.json()["detail"]
         assert client.get("/api/levels/nope/best-run.mcap").status_code == 404

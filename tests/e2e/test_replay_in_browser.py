@@ -73,7 +73,7 @@ def test_watch_best_run_opens_the_replay_and_its_frames_change(browser, app):
         slider.focus()
         gallery.keyboard.press("ArrowRight")
         _wait(lambda: replay.shown_step == 0)
-        gallery.wait_for_function("document.querySelector('[role=slider]').getAttribute('aria-valuenow') === '1'")
+        wait_js(gallery, "document.querySelector('[role=slider]').getAttribute('aria-valuenow') === '1'")
         assert slider.get_attribute("aria-valuemax") == str(replay.last + 1)
         replay.seek(replay.last)
         _wait(lambda: replay.shown_step == replay.last)

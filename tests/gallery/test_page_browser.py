@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from server.gallery.store import SavedLevel, Store
+from tests.e2e.conftest import wait_js
 from tests.gallery.conftest import level_doc
 from tests.gallery.test_concurrency import _free_port, _start_server
 
@@ -90,20 +91,20 @@ def test_more_levels_shows_the_second_page_once_and_then_hides(tmp_path: Path):
                 context = chrome.new_context(permissions=["clipboard-read", "clipboard-write"])
                 page = context.new_page()
                 page.goto(f"{base}/gallery")
-                page.wait_for_function("document.querySelectorAll('article.card').length === 24")
+                wait_js(page, "document.querySelectorAll('article.card').length === 24")
                 names = lambda: page.eval_on_selector_all("article.card .name", "e => e.map(n => n.textContent)")  # noqa: E731
                 assert names() == [item["name"] for item in first["items"]]
                 # Share link: the link is news, not an error: the status line shows it in the normal text colour.
                 page.locator("article.card .share").first.click()
-                page.wait_for_function("/^Link copied: /.test(document.getElementById('status').textContent)")
+                wait_js(page, "/^Link copied: /.test(document.getElementById('status').textContent)")
                 colour = page.evaluate("getComputedStyle(document.getElementById('status')).color")
                 assert colour == "rgb(34, 34, 34)", colour
                 more = page.locator("#more")
                 assert more.is_visible()
                 more.click()
-                page.wait_for_function("document.querySelectorAll('article.card').length === 30")
+                wait_js(page, "document.querySelectorAll('article.card').length === 30")
                 assert names() == [item["name"] for item in first["items"] + second["items"]]
-                page.wait_for_function("document.getElementById('more').hidden")
+                wait_js(page, "document.getElementById('more').hidden")
                 assert not more.is_visible()  # hidden on the last page, despite #more {display: block}
                 page.evaluate("load(false)")  # what a second click would do: nothing left to fetch
                 page.wait_for_timeout(300)

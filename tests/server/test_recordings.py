@@ -323,6 +323,8 @@ def _solve_by_link(app, make_client, level_id: str):
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
     try:
+        _wait(lambda: session.mode == "ready")  # opened for play: it starts with the player's first key
+        keys.down("Space")
         _wait(lambda: session.mode == "ended")
         assert session._result == "solved"
         _wait(lambda: app.store.stats(level_id)["human_plays"] >= 1)

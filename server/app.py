@@ -216,7 +216,8 @@ class App:
                                      per_client=self.config.max_training_per_client)
         data_dir = Path(self.config.data) if self.config.data else default_data_dir()
         self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,
-                                train_steps=self.config.train_steps, train_options=self.config.train_options)
+                                train_steps=self.config.train_steps, train_options=self.config.train_options,
+                                recorder=self.recorder if self.config.record else None)
         self.agents.attach(self.manager)
 
     def stop(self) -> None:

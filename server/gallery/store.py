@@ -520,9 +520,12 @@ class Store:
             func.count().filter(and_(agent, plays_t.c.solved)).label("agent_solved"),
             func.min(case((and_(human, plays_t.c.solved), plays_t.c.seconds))).label("best_human_seconds"),
             func.min(case((and_(human, plays_t.c.solved), plays_t.c.steps))).label("best_human_steps"),
-            # server.gallery.runs keeps the recording of the best human solve only: any named file is the best run
+            # server.gallery.runs keeps the recording of the best recorded human solve only; it is the level's best
+            # run when no faster solve went unrecorded (then the best time has no run to show: has_best_run false)
             func.count().filter(and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None)))
             .label("best_runs"),
+            func.min(case((and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None)), plays_t.c.seconds)))
+            .label("best_run_seconds"),
         ).where(plays_t.c.level_id == level_id if level_id else True).group_by(plays_t.c.level_id).subquery("p"))
         votes = (select(
             votes_t.c.level_id,
@@ -549,7 +552,7 @@ class Store:
                    n(p.c.plays).label("plays"), human_plays.label("human_plays"), human_solved.label("human_solved"),
                    n(p.c.agent_plays).label("agent_plays"), n(p.c.agent_solved).label("agent_solved"),
                    p.c.best_human_seconds, p.c.best_human_steps, n(v.c.up).label("up"), n(v.c.down).label("down"),
-                   n(p.c.best_runs).label("best_runs")]
+                   n(p.c.best_runs).label("best_runs"), p.c.best_run_seconds]
         base = (select(*columns).select_from(levels_t.outerjoin(p, p.c.level_id == levels_t.c.id)
                                              .outerjoin(v, v.c.level_id == levels_t.c.id)))
         return base, keys
@@ -576,7 +579,7 @@ class Store:
                 "agent_solve_rate": rate(row.agent_solved, row.agent_plays),
                 "best_human_seconds": row.best_human_seconds,
                 "best_human_steps": None if row.best_human_steps is None else int(row.best_human_steps),
-                "has_best_run": int(row.best_runs) > 0,
+                "has_best_run": int(row.best_runs) > 0 and row.best_run_seconds <= row.best_human_seconds + 1e-9,
                 "votes_up": int(row.up), "votes_down": int(row.down), "score": int(row.up) - int(row.down),
             },
         }

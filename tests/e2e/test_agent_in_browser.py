@@ -52,6 +52,9 @@ def test_watch_agent_from_a_gallery_card_and_race_from_the_agent_folder(browser,
         gallery.get_by_role("button", name="Race the agent", exact=True).click()
         _wait(lambda: watcher.player == "race")
         race = watcher.controller
+        _wait(lambda: watcher.mode == "ready")  # both sides wait for the human's first key
+        gallery.mouse.click(300, 300)  # focus the canvas (clicks do nothing while playing)
+        gallery.keyboard.press("Space")
         _wait(lambda: race.winner is not None, timeout=120)
         assert race.winner == "tie"  # nobody presses anything and the ball falls onto the goal on both sides
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1 and app.store.stats(level_id)["agent_plays"] == 2)

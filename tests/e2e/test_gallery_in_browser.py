@@ -60,6 +60,9 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         nonce = gallery.get_attribute("#kinetix-session", "data-nonce")
         player = app.manager.session_by_nonce(nonce)
         _wait(lambda: player.gallery_id == level_id)
+        _wait(lambda: player.mode == "ready")  # opened for play: it waits for the player's first key
+        gallery.mouse.click(300, 300)  # focus the canvas (clicks do nothing while playing)
+        gallery.keyboard.press("Space")
         _wait(lambda: player.mode == "ended")
         assert player._result == "solved"
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1)

@@ -32,7 +32,10 @@ def _solve(app, level_id: str) -> None:
     """A protocol-level tab plays the level to its win, so the gallery keeps the run."""
     client = ViserTestClient(app.viser.get_port())
     try:
-        keys = KeysSocket(app.port, session_nonce(client), query=f"?level={level_id}&mode=play")
+        nonce = session_nonce(client)
+        keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
+        _wait(lambda: app.manager.session_by_nonce(nonce).mode == "ready")  # it waits for the first key
+        keys.down("Space")
         _wait(lambda: app.store.stats(level_id)["has_best_run"], timeout=60)
         keys.close()
     finally:

@@ -73,6 +73,8 @@ def test_level_link_opens_and_plays_and_the_finished_play_is_recorded(app, make_
     try:
         _wait(lambda: session.gallery_id == level_id)
         assert session.author_token == token  # the browser's token arrives with the hello
+        _wait(lambda: session.mode == "ready")  # opened for play: it waits for the player's first key
+        keys.down("Space")
         _wait(lambda: session.mode == "ended")
         assert session._result == "solved"
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1)

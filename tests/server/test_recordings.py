@@ -19,6 +19,7 @@ from viser_client import KeysSocket
 from kinetix.formats import build
 from kinetix.levels import to_document
 from kinetix.recording import read_recording, recorded_level, verify
+from server.play import action_from_keys
 from server.session import Controller
 from tests.server.conftest import LEVELS, running_app, session_of, wait_until
 
@@ -106,7 +107,8 @@ def test_a_keyboard_play_is_recorded_and_re_simulates_bitwise(app, make_client):
     assert recording.num_steps == steps and finished.steps == steps
     assert recording.metadata["player"] == "human" and recording.metadata["seed"] == "0"
     assert recording.metadata["project_version"] and recording.env["frame_skip"] == 2
-    assert (recording.actions[:, 0] == 2).sum() >= 15, "ArrowRight drives motor binding 0 at -1 (value 2)"
+    right = action_from_keys({"ArrowRight"}, session.clockwise)[0]  # the level's clockwise turn of binding 0
+    assert (recording.actions[:, 0] == right).sum() >= 15, "ArrowRight drove motor binding 0"
     assert len(recording.frames) >= 2 and recording.frames[0][:2] == b"\xff\xd8"  # JPEG frames
     assert np.all(np.diff(recording.frame_times) >= 0.1 - 1e-6), "frames at most 10 Hz"
     assert recording.step_times[-1] == pytest.approx(steps * 2 / 60), "simulated time"
@@ -342,6 +344,8 @@ def _solve_by_link(app, make_client, level_id: str):
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
     try:
+        _wait(lambda: session.mode == "ready")  # opened for play: it starts with the player's first key
+        keys.down("Space")
         _wait(lambda: session.mode == "ended")
         assert session._result == "solved"
         _wait(lambda: app.store.stats(level_id)["human_plays"] >= 1)

@@ -113,6 +113,10 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
     parser.add_argument("--no-record", dest="record", action="store_false",
                         help="do not record plays (default: every play is recorded to <data>/recordings)")
+    parser.add_argument("--recent-recordings", type=positive_int, metavar="N",
+                        help="most recordings kept in <data>/recordings/recent, oldest removed first (default: 32)")
+    parser.add_argument("--recent-recordings-mb", type=positive_int, metavar="MB",
+                        help="most megabytes kept in <data>/recordings/recent, oldest removed first (default: 64)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:

@@ -614,6 +614,8 @@ class Session:
         try:
             frame = self.render()
         except Exception:
+            if background:  # on the play thread: the scheduler ends this play with the error, logged once there
+                raise
             log.exception("render failed")
             return
         pending = self._pending_push

@@ -104,15 +104,16 @@ def test_a_failing_play_does_not_slow_the_other_tab(app, make_client, poisoned_s
     while time.monotonic() - t0 < MEASURE_S:
         bad.play()
         restarts += 1
-        time.sleep(0.1)
+        time.sleep(0.4)  # a player pressing Play again every so often
     during = (len(healthy_client.frames()) - start) / (time.monotonic() - t0)
     wait_until(lambda: bad.mode == "edit", timeout=5)
+    print(f"healthy tab: {baseline:.1f} frames/s alone, {during:.1f} beside {restarts} failing plays")
     assert healthy.mode == "play" and healthy._message is None
     # >= 25 fps, or on a CI machine too loaded to play at 30 fps even alone, no worse than 85% of its own rate.
     assert during >= min(MIN_FPS, 0.85 * baseline), (during, baseline)
 
     failures = [r for r in caplog.records if r.name == "server.scheduler"]
-    assert restarts >= 5 and len(failures) == 1, [r.getMessage() for r in failures]  # logged once, not per play
+    assert restarts >= 4 and len(failures) == 1, [r.getMessage() for r in failures]  # logged once, not per play
     assert failures[0].levelno == logging.ERROR and failures[0].exc_info is not None
     healthy.stop()
 
@@ -208,3 +209,21 @@ def test_a_session_whose_plan_raises_is_ended_and_the_others_go_on():
     broken._plan = plan
     _run([broken, good])
     assert good.done == [1, 2, 3] and broken.failed == ["KeyError: 'plan'"]
+
+
+def test_a_play_whose_frame_cannot_be_drawn_ends_with_a_message(app, make_client, monkeypatch, caplog):
+    client = make_client(app)
+    session, _ = session_of(app, client)
+    real_render = type(session).render
+
+    def render(self):
+        if self is session and self.mode == "play":
+            raise ZeroDivisionError("cannot draw (injected)")
+        return real_render(self)
+
+    monkeypatch.setattr(type(session), "render", render)
+    caplog.set_level(logging.WARNING, logger="server.scheduler")
+    session.play()
+    wait_until(lambda: session.mode == "edit", timeout=10)
+    assert "ZeroDivisionError: cannot draw" in session._message
+    assert len([r for r in caplog.records if r.name == "server.scheduler"]) == 1

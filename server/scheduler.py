@@ -13,8 +13,8 @@ straight away, as before (see Session._plan).
 Isolation: one session's failure never stops another. Everything done for one session (its plan, its step, its
 frame) runs under its own try; an exception ends that session's play with a visible message (Session.play_failed)
 and the others go on in the same tick. A batched step that raises is retried one play at a time, so only the
-play that fails is ended and the innocent ones keep their frame rate. Failures are logged once per play (the
-play ends), and the same error again (same place, type and message) without its traceback.
+play that fails is ended and the innocent ones keep their frame rate. A failed play ends, so its error is logged
+once; the same error again (same place, type and message) is logged without its traceback, at most once a minute.
 """
 
 from __future__ import annotations

@@ -48,7 +48,8 @@ _THEIR_SOLVER_PARAMS = dict(
 )
 _THEIR_MOTOR_PARAMS = dict(motor_decay_coefficient=0.1, motor_joint_limit=0.1, base_friction=0.4)
 
-# Their names for the fields that kinetix.ranges bounds, so a range error names the field as it is in the file.
+# Their names for the fields that kinetix.ranges bounds, so a range error names the field as it is in the file
+# (vertex indices in such errors count in our counter-clockwise order).
 _FIELD_NAMES: dict[str, str | tuple[str, ...]] = {
     "env.max_timesteps": "env_params.max_timesteps",
     "env.frame_skip": "static_env_params.frame_skip",
@@ -59,7 +60,6 @@ _FIELD_NAMES: dict[str, str | tuple[str, ...]] = {
     "env.physics.base_thruster_power": "env_params.base_thruster_power",
     "gravity": "env_state.gravity",
     "body.angle": "rotation",
-    "body.vertices": "vertices (counter-clockwise)",
     "joint.anchor_a": "a_relative_pos",
     "joint.anchor_b": "b_relative_pos",
     "joint.ref_angle": "rotation",

@@ -9,6 +9,8 @@ import re
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from kinetix.formats import build, describe
 from kinetix.level import LevelError, LevelParams, empty_level
@@ -179,3 +181,19 @@ def test_kinetix_validate_reports_the_field(tmp_path, capsys):
     path.write_text(json.dumps(_with(_document(), ("env", "max_timesteps"), None, 2147483648)))
     assert run(argparse.Namespace(files=[str(path)], seed=0, steps=10)) == 1
     assert "env.max_timesteps: 2147483648 is out of range [1, 100000]" in capsys.readouterr().out
+
+
+@settings(max_examples=150, deadline=None, derandomize=True)
+@given(key=st.sampled_from(sorted(WHERE)),
+       value=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-(2 ** 70), 2 ** 70)))
+def test_no_out_of_range_number_is_ever_accepted(key, value):
+    """Any number in any field: the level loads with the value inside its range, or the error names that field."""
+    path, index = WHERE[key]
+    r = RANGES[key]
+    try:
+        load_level(_with(_document(), path, index, value))
+    except LevelError as error:
+        last = max(i for i, part in enumerate(path) if isinstance(part, str))
+        assert str(error).startswith(_field_text(path[:last + 1], None)), (key, value, str(error))
+        return
+    assert r.low <= value <= r.high and (not r.integer or float(value).is_integer()), (key, value)

@@ -135,6 +135,10 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--identity-limit", type=float, default=None, metavar="N",
                         help="new gallery author or voter identities per hour per client address; 0 = no limit "
                              "(default: 10)")
+    parser.add_argument("--recent-recordings", type=positive_int, metavar="N",
+                        help="most recordings kept in <data>/recordings/recent, oldest removed first (default: 32)")
+    parser.add_argument("--recent-recordings-mb", type=positive_int, metavar="MB",
+                        help="most megabytes kept in <data>/recordings/recent, oldest removed first (default: 64)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:

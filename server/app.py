@@ -41,6 +41,8 @@ class Config:
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
     record: bool = True  # record every play to MCAP (server.recorder); the tab's Recordings folder needs it
+    recent_max_files: int | None = None  # cap on recordings/recent (None: server.recorder.RECENT_MAX_FILES)
+    recent_max_bytes: int | None = None  # its cap in bytes (None: server.recorder.RECENT_MAX_BYTES)
     agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
     warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
     max_training_runs: int = 1  # training worker processes at once; more runs queue
@@ -197,7 +199,9 @@ class App:
             directory = self.store.recordings_dir
         else:
             directory = Path(self.config.data or default_data_dir()) / "recordings"
-        self.recorder = PlayRecorder(directory, enabled=self.config.record)
+        caps = {k: v for k, v in (("max_files", self.config.recent_max_files),
+                                  ("max_bytes", self.config.recent_max_bytes)) if v is not None}
+        self.recorder = PlayRecorder(directory, enabled=self.config.record, **caps)
         if self.config.record:
             removed = self.recorder.clean_up()
             if removed:
@@ -245,6 +249,10 @@ class App:
             self._socket.close()
 
 
+def _megabytes(value: int | None) -> int | None:
+    return None if value is None else value << 20
+
+
 def serve(args) -> int:
     """`kinetix serve`: start, print the URL, run until Ctrl+C (or SIGTERM), then shut down cleanly."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -258,7 +266,9 @@ def serve(args) -> int:
                     max_training_per_client=getattr(args, "max_training_per_client", 1),
                     allowed_hosts=tuple(getattr(args, "allowed_hosts", ())),
                     write_limit=getattr(args, "write_limit", None),
-                    identity_limit=getattr(args, "identity_limit", None))
+                    identity_limit=getattr(args, "identity_limit", None),
+                    recent_max_files=getattr(args, "recent_recordings", None),
+                    recent_max_bytes=_megabytes(getattr(args, "recent_recordings_mb", None)))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

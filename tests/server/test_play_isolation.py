@@ -179,7 +179,9 @@ def test_a_failing_batch_is_retried_play_by_play_and_only_the_culprit_ends(caplo
     _run([good[0], bad, good[1]])
     assert [s.done for s in good] == [[1, 2, 3, 4, 5]] * 2  # every tick stepped, the failing one included
     assert bad.done == [] and bad.failed == ["ValueError: bad play"]
-    assert stepper.batches[0] == 3  # the three were batched together before the culprit was found
+    # The three were batched together before the culprit was found (the scheduler's thread may tick between the
+    # adds above, so the first batch can be smaller).
+    assert max(stepper.batches) == 3
     records = [r for r in caplog.records if r.name == "server.scheduler"]
     assert len(records) == 1 and "stepping" in records[0].getMessage()
 

@@ -129,6 +129,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     if saved is not None:
         resume_module.compare_runs(saved[0]["run"], run_id)
 
+    if not shard and jax.process_count() > 1:
+        raise ValueError("--no-shard cannot be used with several processes: each would train the whole batch alone")
     sharder = None
     if shard and jax.device_count() > 1:
         from kinetix.agents.sharding import batch_sharder, local_mesh

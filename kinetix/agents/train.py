@@ -10,6 +10,8 @@ run early (the checkpoint is still written, marked "stopped": true). The output 
     checkpoint/    the agent (kinetix.agents.checkpoint), loadable with `--agent OUT/checkpoint`
     metrics.json   {"config", "level", "curriculum", "metrics": [one dict per update], "stopped", ...}
     curve.png      mean return and solve rate against env steps
+    resume/        the whole training state, for `kinetix train --resume OUT` (kinetix.agents.resume; written by
+                   `kinetix train`, and by train_agent with save_state, resume or a checkpoint cadence)
 """
 
 from __future__ import annotations
@@ -92,15 +94,17 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                 curriculum_config: curricula.CurriculumConfig | None = None, shard: bool = True,
                 progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
                 command: str | None = None, resume: bool = False, checkpoint_every: float | None = None,
-                checkpoint_every_updates: int | None = None) -> dict:
+                checkpoint_every_updates: int | None = None, save_state: bool = False) -> dict:
     """Train, then write OUT/checkpoint, OUT/metrics.json, OUT/curve.png and OUT/resume/. Returns the metrics.json
     content.
 
-    resume: continue the run whose training state is in OUT/resume (kinetix.agents.resume) instead of starting
-    afresh; every setting must equal the saved run's (CheckpointError naming the differences otherwise).
-    checkpoint_every (minutes of wall-clock time) / checkpoint_every_updates: also write everything (resume state
-    included) between chunks at that cadence, so a killed job loses at most that much work. The state is always
-    written at the end, stopped early or not. In a multi-process run only process 0 writes."""
+    save_state: also write the whole training state to OUT/resume (kinetix.agents.resume) at the end, stopped
+    early or not, so the run can be resumed (`kinetix train` always does; off by default for library callers
+    such as the server, whose specialists need only the checkpoint). resume: continue the run whose training
+    state is in OUT/resume instead of starting afresh; every setting must equal the saved run's (CheckpointError
+    naming the differences otherwise). checkpoint_every (minutes of wall-clock time) / checkpoint_every_updates:
+    also write everything between chunks at that cadence, so a killed job loses at most that much work. Either
+    of these implies save_state. In a multi-process run only process 0 writes."""
     from kinetix.agents import multihost
     from kinetix.agents import resume as resume_module
 
@@ -108,6 +112,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         if value is not None and not value > 0:
             raise ValueError(f"{name.replace('_', '-')} must be positive, got {value}")
     out = Path(out)
+    save_state = save_state or resume or checkpoint_every is not None or checkpoint_every_updates is not None
     config = config or TrainConfig()
     config = dataclasses.replace(config, total_timesteps=steps)
     curriculum_config = curriculum_config or curricula.CurriculumConfig()
@@ -172,7 +177,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
 
     def write(stopped: bool, final: bool) -> dict:
         """Everything a finished run leaves (the curve only at the end); a collective in multi-process runs."""
-        host = resume_module.host_tree(runner)
+        host = resume_module.host_tree(runner if save_state else runner.train_state.params)
         elapsed = elapsed_before + time.perf_counter() - start
         info = {"level": level, "curriculum": curriculum_name, "steps": history[-1]["env_steps"] if history else 0,
                 "seed": seed, "init": init, "command": command, "stopped": stopped}
@@ -184,9 +189,11 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                    "elapsed_seconds": elapsed, "metrics": history}
         if not multihost.is_main():
             return summary
-        meta = {"run": run_id, "arguments": arguments, "history": history, "elapsed": elapsed}
-        resume_module.save(out, len(history), meta, resume_module.flatten(host))
-        checkpoint_module.save(out / "checkpoint", host.train_state.params, config, env.config, info)
+        if save_state:
+            meta = {"run": run_id, "arguments": arguments, "history": history, "elapsed": elapsed}
+            resume_module.save(out, len(history), meta, resume_module.flatten(host))
+        params = host.train_state.params if save_state else host
+        checkpoint_module.save(out / "checkpoint", params, config, env.config, info)
         tmp = out / "metrics.json.tmp"
         tmp.write_text(json.dumps(summary, indent=1) + "\n")
         os.replace(tmp, out / "metrics.json")
@@ -348,7 +355,8 @@ def run(args: argparse.Namespace) -> int:
         summary = train_agent(out=out, shard=not args.no_shard, progress=progress,
                               should_stop=lambda: bool(interrupted) or rule(), command=command,
                               checkpoint_every=args.checkpoint_every,
-                              checkpoint_every_updates=args.checkpoint_every_updates, **settings)
+                              checkpoint_every_updates=args.checkpoint_every_updates, save_state=True,
+                              **settings)
     except (LevelError, CheckpointError, ValueError) as error:
         bar.close()
         print(f"kinetix train: {error}", file=sys.stderr)

@@ -54,7 +54,7 @@ def assert_same_run(out: Path, reference: Path) -> None:
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("uninterrupted")
-    train_agent("random-s", out, **RUN)
+    train_agent("random-s", out, **RUN, save_state=True)
     _, arrays = final_state(out)
     scores = next(v for k, v in arrays.items() if k.startswith(".curriculum") and "scores" in k)
     assert (scores > NEG / 2).any()  # the PLR buffer holds levels: its state is exercised
@@ -64,7 +64,7 @@ def reference(tmp_path_factory) -> Path:
 @pytest.mark.slow
 def test_stopped_run_resumed_from_the_command_line_equals_uninterrupted(reference, tmp_path):
     chunks = []
-    first = train_agent("random-s", tmp_path, **RUN, should_stop=lambda: len(chunks) >= 2,
+    first = train_agent("random-s", tmp_path, **RUN, save_state=True, should_stop=lambda: len(chunks) >= 2,
                         progress=lambda m: chunks.append(m) if m["update"] % 2 == 0 else None)
     assert first["stopped"] and len(first["metrics"]) == 4
     # the second job: everything (level, curriculum, config, seed) comes from the saved run

@@ -12,6 +12,8 @@ collective the others are waiting in; only process 0 writes files (`is_main`).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 
@@ -41,8 +43,11 @@ def detected_cluster() -> str | None:
         return None
     for env in candidates:
         try:
-            if env.is_env_present() and int(env.get_process_count()) > 1:
-                return env.__name__
+            # quietly: JAX's Kubernetes detector warns in any pod without the `kubernetes` package
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                if env.is_env_present() and int(env.get_process_count()) > 1:
+                    return env.__name__
         except Exception:  # a detector that cannot answer here (missing variables, no metadata server)
             continue
     return None

@@ -207,9 +207,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     last_save_time, last_save_update = time.perf_counter(), len(history)
     for _ in range(len(history) // config.updates_per_call, config.num_chunks):
         stop = should_stop is not None and should_stop()
-        due = bool((checkpoint_every is not None and time.perf_counter() - last_save_time >= 60 * checkpoint_every)
-                   or (checkpoint_every_updates is not None
-                       and len(history) - last_save_update >= checkpoint_every_updates))
+        due = checkpoint_due(time.perf_counter() - last_save_time, len(history) - last_save_update,
+                             checkpoint_every, checkpoint_every_updates)
         stop, due = multihost.agree(stop, due)  # process 0 decides, so every process takes the same path
         if stop:
             stopped = True
@@ -229,6 +228,13 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
             if progress is not None:
                 progress(m)
     return write(stopped=stopped, final=True)
+
+
+def checkpoint_due(seconds_since: float, updates_since: int, every_minutes: float | None,
+                   every_updates: int | None) -> bool:
+    """Whether the periodic checkpoint is due, `seconds_since` / `updates_since` the last one (or the job's start)."""
+    return bool((every_minutes is not None and seconds_since >= 60 * every_minutes)
+                or (every_updates is not None and updates_since >= every_updates))
 
 
 def run_identity(level: str, config: TrainConfig, curriculum_name: str, curriculum_config: curricula.CurriculumConfig,

@@ -13,7 +13,7 @@ from kinetix.agents import resume
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.curricula import NEG, CurriculumConfig
 from kinetix.agents.ppo import TrainConfig
-from kinetix.agents.train import train_agent
+from kinetix.agents.train import checkpoint_due, train_agent
 from kinetix.cli import main
 
 # Tiny and short: 4 chunks of 2 updates of 4 envs x 8 steps on random s levels with PLR (its buffer is filled
@@ -158,3 +158,14 @@ def test_restore_checks_paths_and_shapes():
         resume.restore(template, dict(saved, **{"['w']": np.zeros((4,), np.float32)}))
     with pytest.raises(CheckpointError, match="does not fit"):
         resume.restore(template, {"['w']": saved["['w']"]})
+
+
+def test_checkpoint_cadence():
+    assert not checkpoint_due(599.0, 3, every_minutes=10, every_updates=None)
+    assert checkpoint_due(600.0, 0, every_minutes=10, every_updates=None)
+    assert not checkpoint_due(10_000.0, 3, every_minutes=None, every_updates=4)
+    assert checkpoint_due(1.0, 4, every_minutes=None, every_updates=4)
+    assert checkpoint_due(1.0, 4, every_minutes=10, every_updates=4)  # whichever comes first
+    assert not checkpoint_due(10_000.0, 10_000, every_minutes=None, every_updates=None)
+    with pytest.raises(ValueError, match="checkpoint-every must be positive"):
+        train_agent("random-s", "/nonexistent", checkpoint_every=0)

@@ -1,6 +1,7 @@
 """Multi-host training on JAX's distributed runtime: two `kinetix train` processes on this machine (one CPU device
 each, coordinator on 127.0.0.1, gloo collectives) train exactly what one process does with the same total batch;
-only process 0 writes; a state saved by the two-process run resumes in a single process. Plus the option checks."""
+only process 0 writes; a state saved mid-run by the two processes resumes in two processes and in one.
+Plus the option checks."""
 
 import json
 import os
@@ -29,12 +30,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run_two_processes(out: Path, extra: list[str]) -> list[str]:
+def run_two_processes(out: Path, extra: list[str], train: list[str] = TRAIN) -> list[str]:
     """Start processes 0 and 1, wait for both; kill both if either fails or time runs out. Returns their output."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "SLURM_JOB_ID", "OMPI_MCA_orte_hnp_uri")}
     env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
     port = free_port()
-    procs = [subprocess.Popen([sys.executable, "-m", "kinetix", *TRAIN, "--out", str(out), *extra,
+    procs = [subprocess.Popen([sys.executable, "-m", "kinetix", *train, "--out", str(out), *extra,
                                "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)],
                               cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
              for i in range(2)]
@@ -73,13 +74,19 @@ def test_two_processes_equal_one_process_with_the_same_batch(tmp_path):
     one = tmp_path / "one"
     assert main([*TRAIN, "--out", str(one), "--no-shard"]) == 0
     assert_states_close(two, one)
-    # the state the two processes saved mid-run (gathered from both) resumes in one process to the same end
-    half = tmp_path / "half"
-    shutil.copytree(two, half)
-    (resume.state_dir(half) / "state-000000008.msgpack").unlink()
-    assert resume.load_latest(half)[2].name == "state-000000004.msgpack"
-    assert main(["train", "--resume", str(half), "--no-shard"]) == 0
-    assert_states_close(half, one)
+    # the state the two processes saved mid-run (gathered from both) resumes to the same end in two processes
+    # (each array placed back on the global mesh) and in one
+    for name, processes in (("half-two", 2), ("half-one", 1)):
+        half = tmp_path / name
+        shutil.copytree(two, half)
+        (resume.state_dir(half) / "state-000000008.msgpack").unlink()
+        assert resume.load_latest(half)[2].name == "state-000000004.msgpack"
+        if processes == 2:
+            run_two_processes(half, [], train=["train", "--resume", str(half)])
+        else:
+            assert main(["train", "--resume", str(half), "--no-shard"]) == 0
+        assert json.loads((half / "metrics.json").read_text())["resumed_at_update"] == 4
+        assert_states_close(half, one)
 
 
 def test_multihost_options_are_checked(capsys):

@@ -186,6 +186,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                                          else None),
                    "size": env.config.size.name, "devices": jax.device_count(), "processes": jax.process_count(),
                    "resumed_at_update": None if saved is None else len(saved[0]["history"]),
+                   "complete": len(history) == config.num_chunks * config.updates_per_call,  # False mid-run
                    "elapsed_seconds": elapsed, "metrics": history}
         if not multihost.is_main():
             return summary

@@ -66,12 +66,12 @@ def test_stopped_run_resumed_from_the_command_line_equals_uninterrupted(referenc
     chunks = []
     first = train_agent("random-s", tmp_path, **RUN, save_state=True, should_stop=lambda: len(chunks) >= 2,
                         progress=lambda m: chunks.append(m) if m["update"] % 2 == 0 else None)
-    assert first["stopped"] and len(first["metrics"]) == 4
+    assert first["stopped"] and len(first["metrics"]) == 4 and not first["complete"]
     # the second job: everything (level, curriculum, config, seed) comes from the saved run
     assert main(["train", "--resume", str(tmp_path)]) == 0
     assert_same_run(tmp_path, reference)
     summary = json.loads((tmp_path / "metrics.json").read_text())
-    assert summary["resumed_at_update"] == 4 and not summary["stopped"]
+    assert summary["resumed_at_update"] == 4 and not summary["stopped"] and summary["complete"]
 
 
 class Killed(Exception):

@@ -51,9 +51,9 @@ def options_for(platform: str, options: dict[str, Any]) -> dict[str, Any]:
 
 
 @functools.cache
-def _only_platform() -> str | None:
-    """The platform when this process has one backend (a CPU-only machine: every call is on the CPU), else None.
-    Cached: JAX starts its backends once per process."""
+def only_platform() -> str | None:
+    """The platform when this process has one backend (a CPU-only machine: every call is on the CPU), else None
+    (a GPU machine has the GPU's and the CPU's). Cached: JAX starts its backends once per process."""
     platforms = {backend.platform for backend in _xla_bridge.backends().values()}
     return platforms.pop() if len(platforms) == 1 else None
 
@@ -125,12 +125,12 @@ class Jitted:
     @property
     def _top(self) -> Callable:
         """The top-level version for calls with no committed argument."""
-        return self._top_for(_only_platform() or call_platform((), self._fixed))
+        return self._top_for(only_platform() or call_platform((), self._fixed))
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if not _core.trace_state_clean():
             return self._nested(*args, **kwargs)
-        platform = _only_platform() or call_platform(jax.tree.leaves((args, kwargs)), self._fixed)
+        platform = only_platform() or call_platform(jax.tree.leaves((args, kwargs)), self._fixed)
         return self._top_for(platform)(*args, **kwargs)
 
     def __getattr__(self, name: str) -> Any:

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
-from jax2d import contact_solver, joint_solver
+from jax2d import compiling, contact_solver, joint_solver
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.compact import Compact, unpack, update
 from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft
@@ -85,10 +85,15 @@ def step_batch(states: SimState, params: SimParams, motor_actions: jax.Array, th
     # batch axis over devices (kinetix.devices) then splits every part the same way. On a GPU or TPU the
     # parts would run one after the other on a device made for running them side by side (a 256-scene
     # part fills a fraction of it: env l stayed at 31k steps/s from batch 256 to 16,384 on an H100), so
-    # there the whole batch is one pass. The platform is the one the program is compiled for, chosen
-    # while lowering (lax.platform_dependent traces both ways; XLA sees only the chosen one).
-    return jax.lax.platform_dependent(states, params, motor_actions, thruster_actions, cpu=functools.partial(
-        _step_in_parts, chunks=chunks, config=config), default=functools.partial(_step_chunk, config=config))
+    # there the whole batch is one pass.
+    in_parts = functools.partial(_step_in_parts, chunks=chunks, config=config)
+    whole = functools.partial(_step_chunk, config=config)
+    only = compiling.only_platform()
+    if only is not None:  # one backend in this process (a CPU-only machine): decided here, traced once
+        return (in_parts if only == "cpu" else whole)(states, params, motor_actions, thruster_actions)
+    # Several (a GPU machine also has the CPU): the platform the program is lowered for decides
+    # (lax.platform_dependent traces both ways, about twice the step's trace time; XLA sees one).
+    return jax.lax.platform_dependent(states, params, motor_actions, thruster_actions, cpu=in_parts, default=whole)
 
 
 def _step_in_parts(states: SimState, params: SimParams, motor_actions, thruster_actions, *, chunks: int,

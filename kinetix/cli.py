@@ -84,6 +84,9 @@ def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_step
                         help="CPU devices to split each batch over (default: one per core; 1 = a single "
                              "computation on one core). A batch they do not divide runs on one device. The "
                              "Python loop always runs in a child process with one device on one core.")
+    parser.add_argument("--backend", choices=("cpu", "gpu"), default=None,
+                        help="run on this JAX backend (default: JAX's choice, a GPU where there is one); every "
+                             "result names the backend and device kind it ran on")
     # Internal: measure only the Python loop (the one-device, one-core child process of the benchmark).
     parser.add_argument("--loop-only", action="store_true", help=argparse.SUPPRESS)
 
@@ -377,6 +380,14 @@ def main(argv: list[str] | None = None) -> int:
         request_cpu_devices(args.devices)
         if getattr(args, "loop_only", False):  # the benches' interactive-loop child (interactive_loops)
             confine_to_one_core()
+    if getattr(args, "backend", None) is not None:  # before JAX starts: "cpu" hides the other backends
+        from kinetix.devices import BackendError, select_backend
+
+        try:
+            select_backend(args.backend)
+        except BackendError as error:
+            print(f"kinetix {' '.join(command.path)}: {error}", file=sys.stderr)
+            return 2
     if command.uses_jax:
         from kinetix.jaxcache import enable_compilation_cache
 

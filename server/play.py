@@ -95,14 +95,16 @@ class Stepper:
 
     def __init__(self, size, frame_skip: int, solver=None):
         import jax2d
+        from kinetix.devices import on_interactive_device
         from kinetix.env import EnvConfig, make_env
         from kinetix.level import WALLS_SOLVER, empty_level
 
         self.size, self.frame_skip = size, frame_skip
         self.env = make_env(EnvConfig(size=size, frame_skip=frame_skip, solver=solver or WALLS_SOLVER),
                             empty_level(size))
-        self._transition = jax2d.jit(self.env.transition)
-        self._initial = jax2d.jit(self._initial_state)
+        # One scene steps faster on the CPU than on a GPU (kinetix.devices.interactive_device); a no-op without one.
+        self._transition = on_interactive_device(jax2d.jit(self.env.transition))
+        self._initial = on_interactive_device(jax2d.jit(self._initial_state))
         self._batched: dict[int, object] = {}  # bucket -> compiled batched transition, once ready
         self._compiling: set[int] = set()
         self._failed: set[int] = set()  # compiles that failed are not retried (logged once)
@@ -185,6 +187,7 @@ class Stepper:
         import jax.numpy as jnp
 
         import jax2d
+        from kinetix.devices import on_interactive_device
 
         transition = self.env.transition
 
@@ -198,7 +201,7 @@ class Stepper:
 
         try:
             t0 = time.perf_counter()
-            fn = jax2d.jit(many)
+            fn = on_interactive_device(jax2d.jit(many))  # a few plays: the CPU's, like the single step
             # Compile with real shapes: a fresh episode of the empty level, as warm_up does.
             from kinetix.level import LevelFile, LevelParams, empty_level
 

@@ -9,6 +9,10 @@ Two ways of running the step are measured, because the project uses both:
   does every frame; latency_ms is the mean per call, measured in a child process with one device on one
   core (interactive_loops), and the loop's compile_s in this process (run_with_interactive_loops).
 
+Set-up (setup_s: building the batch and its actions, on the device) is timed apart from the rollout: a batch
+is built once and broadcast or indexed as whole arrays, never scene by scene. Every result names the backend
+and device kind it ran on (`--backend cpu|gpu` picks one; see kinetix.devices.select_backend).
+
 Compile times are cold: the persistent compilation cache is switched off for the whole benchmark
 and JAX's in-memory caches are cleared before each measured compilation. A scan's compile_s is
 trace + lower + XLA compile (`jit(...).lower(...).compile()`); the loop's is its first call.
@@ -74,9 +78,13 @@ def level_workload(path: str) -> Workload:
 
     file = load_level(path)
     state = file.level.sim
+
+    def make_batch(batch: int):
+        # One broadcast per leaf on the device (a Python list of `batch` scenes stacked took 291 s at 2,048).
+        return jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x), (batch, *jnp.shape(x))), state)
+
     # The solver the server plays this level with: the walls one where polygon slots 0-3 are static.
-    return Workload(file.name or path, lambda batch: jax.tree.map(lambda x: jnp.stack([x] * batch), state),
-                    solver_for(file.level), file.params.sim_params())
+    return Workload(file.name or path, make_batch, solver_for(file.level), file.params.sim_params())
 
 
 @contextlib.contextmanager
@@ -139,21 +147,37 @@ def timed_runs(run: Callable[[], Any]) -> tuple[float, Any, int]:
     return sorted(times)[len(times) // 2], result, SHORT_RUNS
 
 
-def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = True) -> dict:
-    """Steps per second of `batch` scenes stepped `steps` times inside one jitted scan, and its cold compile time."""
+def rollout_inputs(workload: Workload, batch: int, steps: int) -> tuple:
+    """(scenes, motor actions, thruster actions) for a rollout, on the device(s), split as the rollout splits them.
+
+    The actions (motors uniform in [-1, 1], thrusters in [0, 1]) are drawn on the host in float32 and copied once:
+    at batch 16,384 and 200 steps they are 20M numbers, which numpy's float64 draw took 1.25 s for and JAX's
+    threefry on the CPU device 2-9 s (a loaded 2-core machine).
+    """
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
-    import jax2d
-    from jax2d import step
-    from kinetix.devices import batch_devices, per_device, shard_batch
+    from kinetix.devices import shard_batch
 
     scenes = shard_batch(workload.make_batch(batch), batch)
     rng = np.random.default_rng(SEED)
-    motor = jnp.asarray(rng.uniform(-1.0, 1.0, (steps, batch, scenes.num_joints)), jnp.float32)
-    thrust = jnp.asarray(rng.uniform(0.0, 1.0, (steps, batch, scenes.num_thrusters)), jnp.float32)
-    motor, thrust = shard_batch((motor, thrust), batch, axis=1)
+    motor = rng.random((steps, batch, scenes.num_joints), dtype=np.float32) * np.float32(2) - np.float32(1)
+    thrust = rng.random((steps, batch, scenes.num_thrusters), dtype=np.float32)
+    motor, thrust = shard_batch(jax.device_put((motor, thrust)), batch, axis=1)
+    return jax.block_until_ready((scenes, motor, thrust))
+
+
+def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = True) -> dict:
+    """Steps per second of `batch` scenes stepped `steps` times inside one jitted scan, and its cold compile time."""
+    import jax
+
+    import jax2d
+    from jax2d import step
+    from kinetix.devices import batch_devices, per_device
+
+    start = time.perf_counter()
+    scenes, motor, thrust = rollout_inputs(workload, batch, steps)
+    setup_s = time.perf_counter() - start
     params = _array_params(workload.params)
     step_batch = jax.vmap(lambda s, p, m, t: step(s, p, m, t, config=workload.config), in_axes=(0, None, 0, 0))
 
@@ -179,8 +203,10 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
         "seconds": seconds,
         "runs": runs,
         "compile_s": compile_s,
+        "setup_s": setup_s,
         "devices": batch_devices(batch),
         "finite": _all_finite(final),
+        **measured_on(),
     }
 
 
@@ -238,7 +264,16 @@ def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool 
         "devices": jax.device_count(),
         "cores": usable_cores(),
         "finite": _all_finite(unpack_host(state)),
+        **measured_on(),
     }
+
+
+def measured_on() -> dict:
+    """The backend and device kind a result was measured on."""
+    from kinetix.devices import backend_report
+
+    report = backend_report()
+    return {"backend": report["backend"], "device_kind": report["device_kind"]}
 
 
 def interactive_loops(command: str, selection: list[str]) -> list[dict]:
@@ -289,6 +324,12 @@ def run_with_interactive_loops(measure: Callable[..., list[dict]], command: str,
     return merged
 
 
+def backend_flag(args: argparse.Namespace) -> list[str]:
+    """The `--backend` option for the interactive-loop child, so it measures on the same backend."""
+    backend = getattr(args, "backend", None)
+    return ["--backend", backend] if backend else []
+
+
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, in MB (ru_maxrss is KB on Linux, bytes on macOS)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -312,6 +353,8 @@ def benchmark(
     """
     import jax
 
+    from kinetix.devices import backend_report
+
     results = []
 
     def record(result: dict) -> None:
@@ -328,8 +371,7 @@ def benchmark(
         "what": "engine",
         "peak_rss_mb": peak_rss_mb(),
         "devices": jax.device_count(),
-        "jax": jax.__version__,
-        "backend": jax.default_backend(),
+        **backend_report(),
         "compile_cache": "disabled" if cold else "allowed",
     })
     return results
@@ -343,8 +385,8 @@ _HEADER = f"{'size':<6}{'batch':>7}  {'mode':<12}{'steps/s':>12}{'ms/call':>10}{
 def table_row(result: dict) -> str:
     """One line of the readable table for a result of `benchmark`."""
     if "peak_rss_mb" in result:
-        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}, "
-                f"{result['devices']} devices)")
+        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}: "
+                f"{result.get('device_kind', '?')}, {result['devices']} devices)")
     warning = "" if result["finite"] else "  NON-FINITE STATE"
     if result.get("mode") == "python_loop":
         cells = f"{'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"
@@ -391,5 +433,6 @@ def run(args: argparse.Namespace) -> int:
     else:  # the loops' latencies come from a one-device, one-core child (interactive_loops)
         results = run_with_interactive_loops(
             functools.partial(benchmark, workloads, args.batches, args.steps, loop_calls=COMPILE_LOOP_CALLS), "engine",
-            ["--level", args.level] if args.level else ["--sizes", ",".join(args.sizes)], report)
+            (["--level", args.level] if args.level else ["--sizes", ",".join(args.sizes)]) + backend_flag(args),
+            report)
     return 0 if all(result.get("finite", True) for result in results) else 1

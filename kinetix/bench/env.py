@@ -33,7 +33,9 @@ from kinetix.bench.engine import (
     LOOP_CALLS,
     LOOP_WARMUP,
     SEED,
+    backend_flag,
     cold_compiles,
+    measured_on,
     peak_rss_mb,
     run_with_interactive_loops,
     timed_runs,
@@ -100,7 +102,9 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
                                                      None, length=steps)
         return states, rewards, ends  # per environment
 
-    keys = shard_batch(jax.random.split(jax.random.PRNGKey(SEED), batch), batch)
+    start = time.perf_counter()  # set-up: the keys; the environments are reset on the device, inside the rollout
+    keys = jax.block_until_ready(shard_batch(jax.random.split(jax.random.PRNGKey(SEED), batch), batch))
+    setup_s = time.perf_counter() - start
     if cold:
         jax.clear_caches()
     start = time.perf_counter()
@@ -119,9 +123,11 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
         "seconds": seconds,
         "runs": runs,
         "compile_s": compile_s,
+        "setup_s": setup_s,
         "devices": batch_devices(batch),
         "episodes_ended": int(episodes_ended.sum()),
         "finite": _finite(states),
+        **measured_on(),
     }
 
 
@@ -195,6 +201,7 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
         "devices": jax.device_count(),
         "cores": usable_cores(),
         "finite": finite and _finite(unpack_host(packed).state),
+        **measured_on(),
     }
 
 
@@ -259,6 +266,8 @@ def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: 
     """
     import jax
 
+    from kinetix.devices import backend_report
+
     results = []
 
     def record(result: dict) -> None:
@@ -273,8 +282,7 @@ def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: 
                 record(measure_python_loop(level_file, name, loop_calls, cold))
             for resolution in pixel_resolutions:
                 record(measure_renderer(level_file, name, resolution, cold=cold))
-    record({"what": "env", "peak_rss_mb": peak_rss_mb(), "devices": jax.device_count(),
-            "jax": jax.__version__, "backend": jax.default_backend(),
+    record({"what": "env", "peak_rss_mb": peak_rss_mb(), "devices": jax.device_count(), **backend_report(),
             "compile_cache": "disabled" if cold else "allowed"})
     return results
 
@@ -287,8 +295,8 @@ _HEADER = f"{'size':<5}{'level':<24}{'batch':>6}  {'mode':<12}{'steps/s':>12}{'m
 def table_row(result: dict) -> str:
     """One line of the readable table for a result of `benchmark`."""
     if "peak_rss_mb" in result:
-        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}, "
-                f"{result['devices']} devices)")
+        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}: "
+                f"{result.get('device_kind', '?')}, {result['devices']} devices)")
     head = f"{result['size']:<5}{result['level'][:23]:<24}"
     if result.get("mode") == "pixels":
         return (f"{head}{'':>6}  {'pixels ' + str(result['resolution']):<12}{'':>12}{result['ms_per_frame']:>10.3f}"
@@ -338,5 +346,6 @@ def run(args: argparse.Namespace) -> int:
     else:  # the loops' latencies come from a one-device, one-core child (interactive_loops)
         results = run_with_interactive_loops(
             functools.partial(benchmark, level_files, args.batches, args.steps, loop_calls=COMPILE_LOOP_CALLS), "env",
-            ["--level", args.level] if args.level else ["--sizes", ",".join(args.sizes)], report)
+            (["--level", args.level] if args.level else ["--sizes", ",".join(args.sizes)]) + backend_flag(args),
+            report)
     return 0 if all(result.get("finite", True) for result in results) else 1

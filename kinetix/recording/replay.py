@@ -2,6 +2,8 @@
 
 Bitwise equality needs the same compiled program on the same machine. Players (the CLI, the server) step with
 `step_function(config)` from here, and replay uses the same function, so both run one XLA program per config.
+On a machine with a GPU both step on the CPU device (kinetix.devices.interactive_device), where the server's
+sessions step too, so a recording replays on the backend it was made on.
 """
 
 from __future__ import annotations
@@ -23,10 +25,11 @@ from kinetix.recording.reader import Recording
 def step_function(config):
     """The jitted `(state, action, params) -> (next_state, reward, terminated, truncated, info)` for one EnvConfig
     (no observation, no reset). One per config for the whole process, shared by recording and replay."""
+    from kinetix.devices import on_interactive_device
     from kinetix.env import KinetixEnv
 
     env = KinetixEnv(config, lambda key: None)  # transition never calls the reset function
-    return jax2d.jit(env.transition)
+    return on_interactive_device(jax2d.jit(env.transition))
 
 
 @functools.cache
@@ -37,6 +40,7 @@ def batched_step_function(config, batch: int):
     re-simulate bitwise."""
     import jax.numpy as jnp
 
+    from kinetix.devices import on_interactive_device
     from kinetix.env import KinetixEnv
 
     env = KinetixEnv(config, lambda key: None)
@@ -47,7 +51,7 @@ def batched_step_function(config, batch: int):
         out = many(jax.tree.map(copies, state), np.stack([np.asarray(action)] * batch), jax.tree.map(copies, params))
         return jax.tree.map(lambda x: x[0], out)
 
-    return step
+    return on_interactive_device(step)
 
 
 def _stepper(config, recording: Recording):

@@ -47,6 +47,18 @@ def test_forty_scenes_in_parts_of_ten_equal_one_pass_on_the_cpu():
     assert worst < 1e-5, worst
 
 
+def test_with_one_backend_the_split_is_decided_when_tracing(monkeypatch):
+    """A CPU-only process splits without tracing the GPU's way (no platform conditional in the program); a
+    process whose only backend is a GPU steps the batch whole."""
+    config = jax2d.SolverConfig(chunk=4)
+    bodies = small_random_scenes(1)[0].bodies.position.shape[0]
+    part = f"tensor<4x{bodies}x2xf32>"
+    # Lowered for CUDA, yet split: the decision was the CPU-only process's, made while tracing.
+    assert part in _lowered_text("cuda", 12, config)
+    monkeypatch.setattr(jax2d.compiling, "only_platform", lambda: "cuda")
+    assert part not in _lowered_text("cpu", 12, config)
+
+
 def _lowered_text(platform: str, batch: int, config: jax2d.SolverConfig) -> str:
     """The StableHLO of one batched step lowered for `platform` (no device of that platform is needed)."""
     states = scenes.stack(small_random_scenes(batch))
@@ -56,9 +68,11 @@ def _lowered_text(platform: str, batch: int, config: jax2d.SolverConfig) -> str:
     return jax.export.export(step, platforms=[platform])(states, m, th).mlir_module()
 
 
-def test_the_batch_is_split_on_the_cpu_only():
+def test_the_batch_is_split_on_the_cpu_only(monkeypatch):
     """chunk=4 at batch 12: lowered for the CPU the step runs on parts of 4 scenes (lax.map: one loop more);
-    lowered for CUDA (any platform but the CPU) it runs the 12 scenes at once and no part appears."""
+    lowered for CUDA (any platform but the CPU) it runs the 12 scenes at once and no part appears.
+    As on a machine with a GPU (several backends), where the lowering platform decides."""
+    monkeypatch.setattr(jax2d.compiling, "only_platform", lambda: None)
     config = jax2d.SolverConfig(chunk=4)
     bodies = small_random_scenes(1)[0].bodies.position.shape[0]
     part, whole = f"tensor<4x{bodies}x2xf32>", f"tensor<12x{bodies}x2xf32>"
@@ -68,8 +82,9 @@ def test_the_batch_is_split_on_the_cpu_only():
     assert cpu.count("stablehlo.while") == cuda.count("stablehlo.while") + 1
 
 
-def test_a_batch_no_larger_than_chunk_lowers_the_same_everywhere():
+def test_a_batch_no_larger_than_chunk_lowers_the_same_everywhere(monkeypatch):
     """Below the chunk nothing is platform dependent: the program is the same for every platform."""
+    monkeypatch.setattr(jax2d.compiling, "only_platform", lambda: None)
     def scrub(text: str) -> str:  # without source locations and the platform's name
         text = "\n".join(line for line in text.splitlines() if not line.startswith("#loc"))
         return re.sub(r"mhlo\.platforms = \[[^\]]*\]|\s*loc\(#loc\d*\)", "", text)

@@ -13,7 +13,7 @@ from tests.jax2d import scenes
 def test_jit_passes_the_engine_options_and_lets_the_caller_add_or_override(monkeypatch) -> None:
     seen = []
     monkeypatch.setattr(compiling.jax, "jit", lambda fun, **kwargs: seen.append(kwargs) or fun)
-    monkeypatch.setattr(compiling, "_only_platform", lambda: "cpu")
+    monkeypatch.setattr(compiling, "only_platform", lambda: "cpu")
     plain = jax2d.jit(len, static_argnames="x")
     assert seen == [{"static_argnames": "x"}]  # the nested version, made at once
     plain("ab")  # the CPU's top-level version, made on the first call from Python
@@ -40,7 +40,7 @@ def test_a_call_on_a_gpu_compiles_without_the_cpu_options(monkeypatch) -> None:
     """Where a process has several backends, each call's platform picks its own top-level jit."""
     seen = []
     monkeypatch.setattr(compiling.jax, "jit", lambda fun, **kwargs: seen.append(kwargs) or fun)
-    monkeypatch.setattr(compiling, "_only_platform", lambda: None)  # as on a machine with a GPU
+    monkeypatch.setattr(compiling, "only_platform", lambda: None)  # as on a machine with a GPU
     monkeypatch.setattr(compiling, "call_platform", lambda leaves, fixed=None: "gpu")
     jitted = jax2d.jit(len)
     jitted("ab")

@@ -1,0 +1,171 @@
+"""jax2d and the environment on a GPU: skipped where JAX has none (CI, the 2-core development machine).
+
+Where there is one (install with `pip install -e '.[cuda]'`; see README "Running on a GPU"), this runs physics
+accuracy tests of tests/jax2d on it, a batched environment rollout, and compares GPU against CPU results to
+float32 rounding grown by the contacts (XLA compiles other kernels per backend and may contract multiply-adds
+differently; bitwise equality across backends is not expected). Run alone:
+
+    python -m pytest tests/test_gpu.py -v
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jax2d
+
+
+def _gpu():
+    try:
+        return jax.devices("gpu")[0]
+    except RuntimeError:  # JAX has no GPU backend here
+        return None
+
+
+GPU = _gpu()
+pytestmark = pytest.mark.skipif(
+    GPU is None, reason=f"no GPU: JAX's backends here are {jax.default_backend()} only "
+                        "(install JAX's CUDA wheels with pip install -e '.[cuda]' on a machine with an NVIDIA GPU)")
+CPU = jax.devices("cpu")[0]
+
+
+def _close(a, b, relative: float, absolute: float) -> tuple[bool, float]:
+    """Every leaf of a and b within `absolute` + `relative` x the leaf's largest magnitude; and the worst gap."""
+    ok, worst = True, 0.0
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        gap = float(np.abs(x - y).max(initial=0.0))
+        ok &= gap <= absolute + relative * float(np.abs(x).max(initial=0.0))
+        worst = max(worst, gap)
+    return ok, worst
+
+
+def _on(device, fn, *args):
+    """fn(*args) with its computations placed on `device` (arguments are copied there, committed)."""
+    with jax.default_device(device):
+        return jax.device_get(fn(*jax.device_put(args, device)))
+
+
+# ---------------------------------------------------------------- physics accuracy tests, run on the GPU
+
+def _physics_tests():
+    from tests.jax2d import test_physics as p
+
+    return [
+        ("free_fall", p.test_free_fall_matches_symplectic_euler_and_half_g_t_squared, ()),
+        ("pendulum", p.test_pendulum_period_and_amplitude, (0.25,)),
+        ("bounce", p.test_restitution_bounce_height, (0.8, 0.0)),
+        ("incline_slides", p.test_friction_on_incline_sticks_or_slides, (1.25,)),
+        ("motor", p.test_motor_reaches_target_speed, (1.0,)),
+        ("thruster", p.test_thruster_through_centre_gives_f_over_m, ()),
+        ("pyramid", p.test_pyramid_stays_standing, ()),
+        ("chain", p.test_chain_stretch, (True,)),
+        ("welded_star", p.test_welded_star_spins_as_one_rigid_body, (0.4, 0.001, 0.01)),
+        ("light_hub", p.test_light_hub_with_far_anchors_holds_together, ()),
+        ("batch_in_parts", p.test_large_batches_stepped_in_parts_equal_one_pass, ()),
+        ("vmap_equals_single", p.test_vmap_equals_separate_runs, ()),
+    ]
+
+
+@pytest.mark.parametrize("index", range(12), ids=[name for name, *_ in _physics_tests()] if GPU else None)
+def test_physics_accuracy_on_the_gpu(index):
+    """The tests/jax2d accuracy test, its computations placed on the GPU by jax.default_device."""
+    _, test, args = _physics_tests()[index]
+    probe = jax2d.jit(lambda x: x + 1)
+    with jax.default_device(GPU):
+        assert probe(np.float32(1)).devices() == {GPU}  # placed where we think
+        test(*args)
+
+
+def test_the_cpu_compile_options_do_not_reach_the_gpu():
+    """Every CUDA compile failed on xla_cpu_use_fusion_emitters before jax2d.jit chose options per platform."""
+    out = jax2d.jit(lambda x: x * 2)(jax.device_put(np.float32(2), GPU))
+    assert float(out) == 4.0 and out.devices() == {GPU}
+
+
+def _engine_rollout(batch: int, steps: int, config):
+    from kinetix.bench import scenes
+
+    states = scenes.build_batch("l", batch, seed=7)
+    rng = np.random.default_rng(7)
+    motor = rng.uniform(-1, 1, (steps, batch, states.num_joints)).astype(np.float32)
+    thrust = rng.uniform(0, 1, (steps, batch, states.num_thrusters)).astype(np.float32)
+    vstep = jax.vmap(lambda s, m, t: jax2d.step(s, jax2d.SimParams(), m, t, config=config))
+    rollout = jax2d.jit(lambda s, m, t: jax.lax.scan(lambda s, a: (vstep(s, *a), None), s, (m, t))[0])
+    return rollout, (states, motor, thrust)
+
+
+def test_a_large_batch_on_the_gpu_agrees_with_the_cpu():
+    """512 l scenes (more than SolverConfig.chunk: parts on the CPU, one pass on the GPU), 20 steps."""
+    from kinetix.bench import scenes
+
+    rollout, args = _engine_rollout(512, 20, scenes.CONFIG)
+    gpu, cpu = _on(GPU, rollout, *args), _on(CPU, rollout, *args)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(gpu) if np.asarray(x).dtype.kind == "f")
+    assert float(np.abs(np.asarray(gpu.bodies.position) - np.asarray(args[0].bodies.position)).max()) > 1e-3
+    ok, worst = _close(gpu, cpu, relative=2e-4, absolute=5e-5)
+    assert ok, worst
+
+
+def test_gpu_reruns_are_bitwise_identical():
+    """The same program on the same inputs twice. Holds on the CPU; on a GPU only if XLA's GPU kernels are
+    deterministic (scatter-adds with atomics are not unless XLA_FLAGS=--xla_gpu_deterministic_ops=true)."""
+    from kinetix.bench import scenes
+
+    rollout, args = _engine_rollout(256, 20, scenes.CONFIG)
+    first, second = _on(GPU, rollout, *args), _on(GPU, rollout, *args)
+    for x, y in zip(jax.tree.leaves(first), jax.tree.leaves(second), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+# ---------------------------------------------------------------- the environment, batched, on the GPU
+
+def _env_rollout(batch: int, steps: int):
+    from kinetix.actions import sample_random_action
+    from kinetix.env import EnvConfig, EnvParams, make_env
+    from kinetix.levels import load_level
+
+    level_file = load_level("levels/cartpole.json")
+    env = make_env(EnvConfig(size=level_file.size, observation="entity", action="multi_discrete",
+                             frame_skip=level_file.params.frame_skip), level_file)
+    params = EnvParams.from_level_params(level_file.params)
+
+    def rollout(keys):
+        obs, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+
+        def one(carry, _):
+            keys, states, total = carry
+            split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
+            actions = jax.vmap(lambda k: sample_random_action(k, env.config.action))(split[:, 1])
+            obs, states, reward, terminated, truncated, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                split[:, 2], states, actions, params)
+            return (split[:, 0], states, total + reward), None
+
+        (_, states, total), _ = jax.lax.scan(one, (keys, states, jnp.zeros(keys.shape[0])), None, length=steps)
+        return states, total
+
+    return jax2d.jit(rollout), jax.random.split(jax.random.PRNGKey(24), batch)
+
+
+@functools.cache
+def _env_results(batch: int = 1024, steps: int = 10):
+    rollout, keys = _env_rollout(batch, steps)
+    return _on(GPU, rollout, keys), _on(CPU, rollout, keys)
+
+
+def test_a_batched_env_rollout_runs_on_the_gpu():
+    (states, total), _ = _env_results()
+    bodies = states.level.sim.bodies
+    assert np.isfinite(np.asarray(bodies.position)).all() and np.isfinite(np.asarray(total)).all()
+    assert np.asarray(bodies.position).shape[0] == 1024
+
+
+def test_the_batched_env_rollout_agrees_with_the_cpu():
+    """1,024 envs, 10 agent steps with random actions: the same states to rounding grown by the contacts."""
+    gpu, cpu = _env_results()
+    ok, worst = _close(gpu[0].level.sim, cpu[0].level.sim, relative=2e-4, absolute=5e-5)
+    assert ok, worst
+    np.testing.assert_allclose(gpu[1], cpu[1], rtol=1e-3, atol=1e-3)  # episode rewards

@@ -1,4 +1,6 @@
-"""Startup: viser on an internal ephemeral port, the side server on the user's port, sessions, warm-up, Ctrl+C.
+"""Startup: viser on an internal port of 127.0.0.1, the side server on the user's port, sessions, warm-up, Ctrl+C.
+
+Browsers reach everything through the user's port: the side server relays viser's websocket (server.http).
 
     app = App(Config(port=0)).start()     # port 0: any free port (tests)
     print(app.url)                        # the one URL to open
@@ -79,7 +81,7 @@ class App:
         import viser
 
         from server import play
-        from server.http import create_app
+        from server.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
         from server.memory import keep_frame_buffers_resident
         from server.session import SessionManager
 
@@ -115,7 +117,8 @@ class App:
         else:
             after_compiles()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
-            self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
+            # Loopback only, whatever --host says: the one port the user gave is the only one others can reach.
+            self.viser = viser.ViserServer(host=VISER_HOST, port=0, verbose=False)
         self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)
         # Docked, the panel sits beside the canvas instead of floating over its right third, so no part of the level
         # hides behind it, and the browser renders a smaller canvas (headless Chromium at a 1280x800 window:
@@ -134,7 +137,9 @@ class App:
             self._start_recordings()
         app = create_app(self.manager, self.viser.get_port(), gallery_router=router)
         self._attach_agents()
-        config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
+        # No per-message deflate: viser's frames are zstd and JPEG already, and deflating them per tab costs CPU.
+        config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=MAX_BROWSER_MESSAGE,
+                                ws_per_message_deflate=False)
         self._uvicorn = uvicorn.Server(config)
         self._uvicorn.install_signal_handlers = lambda: None  # the main thread handles Ctrl+C
         self._thread = threading.Thread(target=self._uvicorn.run, kwargs={"sockets": [sock]},

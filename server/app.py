@@ -43,6 +43,7 @@ class Config:
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
     record: bool = True  # record every play to MCAP (server.recorder); the tab's Recordings folder needs it
+    drafts: bool = True  # keep every tab's work as a draft in <data>/drafts (server.draft_tab): reloads lose nothing
     agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
     warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
     max_training_runs: int = 1  # training worker processes at once; more runs queue
@@ -65,6 +66,7 @@ class App:
         self.recorder = None  # the PlayRecorder (server.recorder), once started
         self.training = None  # the TrainingPool, with agents on
         self.agents = None  # the AgentLink, with agents on
+        self.drafts = None  # the DraftStore, with drafts on
 
     @property
     def port(self) -> int:
@@ -137,6 +139,7 @@ class App:
             self._start_recordings()
         app = create_app(self.manager, self.viser.get_port(), gallery_router=router)
         self._attach_agents()
+        self._attach_drafts()
         # No per-message deflate: viser's frames are zstd and JPEG already, and deflating them per tab costs CPU.
         config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=MAX_BROWSER_MESSAGE,
                                 ws_per_message_deflate=False)
@@ -207,11 +210,26 @@ class App:
                                 train_steps=self.config.train_steps, train_options=self.config.train_options)
         self.agents.attach(self.manager)
 
+    def _attach_drafts(self) -> None:
+        """Drafts and the address bar (last, so `?draft=` is looked at before the gallery's and agents' links)."""
+        if not self.config.drafts:
+            return
+        from server.draft_tab import DraftLink
+        from server.drafts import DraftStore
+
+        self.drafts = DraftStore(Path(self.config.data or default_data_dir()) / "drafts")
+        removed = self.drafts.clean_up()
+        if removed:
+            log.info("removed %d old drafts", len(removed))
+        DraftLink(self.drafts).attach(self.manager)
+
     def stop(self) -> None:
         from server import play
 
         if self.manager is not None:
             self.manager.close_all()
+        if self.drafts is not None:
+            self.drafts.close()  # write the drafts still queued
         if self.recorder is not None:
             self.recorder.close()  # finish recordings of plays cut short by the shutdown
         if self.training is not None:

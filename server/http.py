@@ -106,8 +106,9 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 session.author_token = hello["token"]  # the gallery author token the browser keeps
             await socket.send_text(json.dumps({"type": "ready"}))
             query = hello.get("query")
-            if isinstance(query, str) and query and manager.on_query is not None:
-                # e.g. /?level=<gallery id>&mode=play: the page's query reaches Python only through this socket.
+            if isinstance(query, str) and manager.on_query is not None:
+                # e.g. /?level=<gallery id>&mode=play, ?draft=<id>, or "" (a new tab gets a draft id): the page's
+                # query reaches Python only through this socket.
                 await asyncio.get_running_loop().run_in_executor(None, manager.on_query, session, query)
             while True:
                 event = await _receive(socket)

@@ -13,40 +13,129 @@ kernels in less time, and faster ones under `vmap`. Measured on the 2-core refer
 The options are per computation (`jax.jit(compiler_options=...)`), so programs that import jax2d
 keep their own defaults, and the persistent compilation cache keys on them. Everything in this
 project jits through here (ruff's banned-api rule TID251 enforces it).
+
+Options are per backend: XLA refuses an option its backend does not know (on CUDA every compile failed
+with "No such compile option: 'xla_cpu_use_fusion_emitters'"), so each call compiles with the options
+of the platform it runs on (`options_for`), found the way JAX places the call (`call_platform`):
+committed arguments, then the jit's device, then `jax.default_device`, then the default backend.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import jax
 from jax._src import core as _core  # trace_state_clean: JAX has no public "am I inside a trace" test
+from jax._src import xla_bridge as _xla_bridge  # backends(): which platforms this process has
 
+# The engine's options on the CPU (see the module docstring). Other backends get none of their own yet.
 COMPILER_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
+# An option named with one of these prefixes exists only in those platforms' compilers. JAX names a GPU
+# device's platform "gpu" and its backend "cuda" or "rocm"; all three are accepted here.
+PLATFORM_PREFIXES: dict[str, tuple[str, ...]] = {
+    "xla_cpu_": ("cpu",),
+    "xla_gpu_": ("gpu", "cuda", "rocm"),
+    "xla_tpu_": ("tpu",),
+}
+
+
+def options_for(platform: str, options: dict[str, Any]) -> dict[str, Any]:
+    """The part of `options` that the compiler of `platform` ("cpu", "gpu", "cuda", "rocm", "tpu") accepts:
+    every option but those named for another platform (`PLATFORM_PREFIXES`)."""
+    platform = platform.lower()
+    return {name: value for name, value in options.items()
+            if all(platform in platforms or not name.startswith(prefix)
+                   for prefix, platforms in PLATFORM_PREFIXES.items())}
+
+
+@functools.cache
+def _only_platform() -> str | None:
+    """The platform when this process has one backend (a CPU-only machine: every call is on the CPU), else None.
+    Cached: JAX starts its backends once per process."""
+    platforms = {backend.platform for backend in _xla_bridge.backends().values()}
+    return platforms.pop() if len(platforms) == 1 else None
+
+
+def _platform_of(where: Any) -> str | None:
+    """The platform of a Device, a platform name (as `jax.default_device` accepts) or a Sharding; None if none."""
+    if where is None:
+        return None
+    if isinstance(where, str):
+        return where
+    if isinstance(where, jax.sharding.Sharding):
+        return next(iter(where.device_set)).platform
+    return where.platform
+
+
+def call_platform(leaves: Iterable[Any], fixed: str | None = None, default_device: Any = None,
+                  default_backend: str | None = None) -> str:
+    """The platform a top-level jitted call runs on, decided as JAX decides it: a committed array argument
+    (`jax.device_put` to a device), then the jit's own device or backend (`fixed`), then `jax.default_device`
+    (`default_device`, read from JAX's config when None), then the default backend."""
+    for leaf in leaves:
+        if isinstance(leaf, jax.Array) and leaf.committed:
+            return next(iter(leaf.devices())).platform
+    return (fixed or _platform_of(default_device if default_device is not None else jax.config.jax_default_device)
+            or default_backend or jax.default_backend())
+
+
+def _fixed_platform(kwargs: dict[str, Any]) -> str | None:
+    """The platform a jit's own arguments pin it to (device=, backend=, or concrete shardings), if any."""
+    if kwargs.get("device") is not None:
+        return kwargs["device"].platform
+    if kwargs.get("backend") is not None:
+        return kwargs["backend"]
+    for name in ("in_shardings", "out_shardings"):
+        shardings = [s for s in jax.tree.leaves(kwargs.get(name)) if isinstance(s, jax.sharding.Sharding)]
+        if shardings:
+            return _platform_of(shardings[0])
+    return None
 
 
 class Jitted:
-    """A function jitted twice: with the engine's options when called from Python, plainly inside a trace.
+    """A function jitted with the engine's options (per platform) when called from Python, plainly inside a trace.
 
     JAX accepts compiler options only on the outermost jit (a nested one raises ValueError), and a
     nested jit is compiled as part of its caller anyway, under the caller's options. So a function
     jitted here can be called anywhere a `jax.jit` function can. Attributes (`lower`, `trace`,
-    `eval_shape`, ...) are those of the top-level version.
+    `eval_shape`, ...) are those of the top-level version for the default platform.
+
+    A top-level version is made per platform on first use. In a process with one backend (a CPU-only machine)
+    the platform is known without looking at the arguments; with several (a GPU machine, whose CPU is a backend
+    too) every call looks for a committed argument first.
     """
 
     def __init__(self, fun: Callable, options: dict[str, Any], kwargs: dict[str, Any]) -> None:
         functools.update_wrapper(self, fun)  # first: it copies fun.__dict__, which must not replace the jits below
-        self._top = jax.jit(fun, compiler_options=options, **kwargs)  # noqa: TID251 - the one place
+        self._fun, self._options, self._kwargs = fun, options, kwargs
+        self._fixed = _fixed_platform(kwargs)
+        self._by_platform: dict[str, Callable] = {}
         self._nested = jax.jit(fun, **kwargs)  # noqa: TID251 - the one place
 
+    def _top_for(self, platform: str) -> Callable:
+        jitted = self._by_platform.get(platform)
+        if jitted is None:
+            options = options_for(platform, self._options) or None
+            jitted = jax.jit(self._fun, compiler_options=options, **self._kwargs)  # noqa: TID251 - the one place
+            jitted = self._by_platform.setdefault(platform, jitted)  # another thread may have been first
+        return jitted
+
+    @property
+    def _top(self) -> Callable:
+        """The top-level version for calls with no committed argument."""
+        return self._top_for(_only_platform() or call_platform((), self._fixed))
+
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        return (self._top if _core.trace_state_clean() else self._nested)(*args, **kwargs)
+        if not _core.trace_state_clean():
+            return self._nested(*args, **kwargs)
+        platform = _only_platform() or call_platform(jax.tree.leaves((args, kwargs)), self._fixed)
+        return self._top_for(platform)(*args, **kwargs)
 
     def __getattr__(self, name: str) -> Any:
-        if name in ("_top", "_nested"):  # not yet set (copying, unpickling): no recursion
-            raise AttributeError(name)
+        if name in ("_fun", "_options", "_kwargs", "_fixed", "_by_platform", "_nested"):
+            raise AttributeError(name)  # not yet set (copying, unpickling): no recursion
         return getattr(self._top, name)
 
     def __get__(self, obj: Any, objtype: Any = None) -> Any:  # as a method decorator, like jax.jit
@@ -54,7 +143,7 @@ class Jitted:
 
 
 def jit(fun: Callable, /, **kwargs: Any) -> Jitted:
-    """`jax.jit(fun, **kwargs)` that compiles with COMPILER_OPTIONS (a caller's `compiler_options` win)
-    when called from Python, and is an ordinary nested jit when called inside another trace."""
+    """`jax.jit(fun, **kwargs)` that compiles with COMPILER_OPTIONS (a caller's `compiler_options` win), less
+    those the call's platform does not accept, when called from Python; an ordinary nested jit inside a trace."""
     options = {**COMPILER_OPTIONS, **(kwargs.pop("compiler_options", None) or {})}
     return Jitted(fun, options, kwargs)

@@ -55,6 +55,13 @@ def positive_int(text: str) -> int:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise ValueError(f"{value} is a negative integer")
+    return value
+
+
 def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_steps: int, level_help: str) -> None:
     """The options every `kinetix bench` throughput command shares."""
     parser.add_argument("--json", action="store_true", help="print results as JSON lines instead of a table")
@@ -109,10 +116,25 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-training-runs", type=positive_int, default=1,
                         help="training runs (worker processes) at once from 'Train on this level'; more queue "
                              "(default: 1)")
+    parser.add_argument("--max-training-queue", type=non_negative_int, default=8,
+                        help="training runs waiting in all; beyond it 'Train on this level' is refused (default: 8)")
+    parser.add_argument("--max-training-per-client", type=positive_int, default=1,
+                        help="training runs of one person (author identity, else tab) running at once; one more "
+                             "may wait (default: 1)")
     parser.add_argument("--warm", type=comma_list(str, allowed={"s", "m", "l", "none"}), default=["s", "m", "l"],
                         help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
     parser.add_argument("--no-record", dest="record", action="store_false",
                         help="do not record plays (default: every play is recorded to <data>/recordings)")
+    # Web safety (server/web_security.py, server/gallery/limits.py); None keeps the server's defaults.
+    parser.add_argument("--allowed-hosts", type=comma_list(str), default=[], metavar="NAMES",
+                        help="host names or addresses clients may use in the URL besides the --host address, "
+                             "localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS rebinding)")
+    parser.add_argument("--write-limit", type=float, default=None, metavar="N",
+                        help="gallery writes (save, change, delete, vote) per minute per client address; 0 = no "
+                             "limit (default: 60)")
+    parser.add_argument("--identity-limit", type=float, default=None, metavar="N",
+                        help="new gallery author or voter identities per hour per client address; 0 = no limit "
+                             "(default: 10)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:

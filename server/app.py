@@ -47,9 +47,14 @@ class Config:
     agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
     warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
     max_training_runs: int = 1  # training worker processes at once; more runs queue
+    max_training_queue: int = 8  # training runs waiting in all; beyond it "Train" is refused (queue full)
+    max_training_per_client: int = 1  # runs of one client (author identity, else tab) running at once
     train_steps: int = 100_000  # the default of a tab's "Training steps"
     train_options: dict = dataclasses.field(default_factory=dict)  # e.g. {"config": {"num_envs": 8}} (tests)
     train_worker: object = None  # the training worker function (tests swap in a cheap one); default train_worker
+    allowed_hosts: tuple[str, ...] = ()  # host names besides `host`, localhost and 127.0.0.1 (server.web_security)
+    write_limit: float | None = None  # gallery writes per minute per client; None: RateLimits' default, 0: off
+    identity_limit: float | None = None  # new gallery identities per hour per client; None: default, 0: off
 
 
 class App:
@@ -86,11 +91,17 @@ class App:
         from server.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
         from server.memory import keep_frame_buffers_resident
         from server.session import SessionManager
+        from server.web_security import allowed_hosts_for
 
         if self.config.max_sessions < 1:
             raise ValueError(f"--max-sessions must be at least 1, got {self.config.max_sessions}")
         if self.config.max_training_runs < 1:
             raise ValueError(f"--max-training-runs must be at least 1, got {self.config.max_training_runs}")
+        if self.config.max_training_per_client < 1:
+            raise ValueError("--max-training-per-client must be at least 1, got "
+                             f"{self.config.max_training_per_client}")
+        if self.config.max_training_queue < 0:
+            raise ValueError(f"--max-training-queue cannot be negative, got {self.config.max_training_queue}")
         # Bind the user's port first so a busy port fails loudly (viser would silently take the next one).
         sock = socket.socket(socket.AF_INET6 if ":" in self.config.host else socket.AF_INET)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -137,7 +148,8 @@ class App:
         router = self._gallery_router()
         if self.recorder is None:
             self._start_recordings()
-        app = create_app(self.manager, self.viser.get_port(), gallery_router=router)
+        app = create_app(self.manager, self.viser.get_port(), gallery_router=router,
+                         allowed_hosts=allowed_hosts_for(self.config.host, self.config.allowed_hosts))
         self._attach_agents()
         self._attach_drafts()
         # No per-message deflate: viser's frames are zstd and JPEG already, and deflating them per tab costs CPU.
@@ -169,6 +181,7 @@ class App:
         if not self.config.gallery:
             return None
         from server.gallery.api import make_router
+        from server.gallery.limits import RateLimits
         from server.gallery.store import open_store
         from server.gallery.tab import GalleryLink
 
@@ -178,7 +191,9 @@ class App:
         link.attach(self.manager)
         if link.runs is not None:
             link.runs.remove_orphans()
-        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
+        given = {"writes_per_minute": self.config.write_limit, "identities_per_hour": self.config.identity_limit}
+        limits = RateLimits(**{name: value for name, value in given.items() if value is not None})
+        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits)
 
     def _start_recordings(self) -> None:
         """Record every play (server.recorder) into the gallery's recordings folder, else <data>/recordings, and
@@ -204,10 +219,13 @@ class App:
         from server.agent_tab import AgentLink
         from server.training import TrainingPool, train_worker
 
-        self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker)
+        self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker,
+                                     max_queued=self.config.max_training_queue,
+                                     per_client=self.config.max_training_per_client)
         data_dir = Path(self.config.data) if self.config.data else default_data_dir()
         self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,
-                                train_steps=self.config.train_steps, train_options=self.config.train_options)
+                                train_steps=self.config.train_steps, train_options=self.config.train_options,
+                                recorder=self.recorder if self.config.record else None)
         self.agents.attach(self.manager)
 
     def _attach_drafts(self) -> None:
@@ -258,7 +276,12 @@ def serve(args) -> int:
     config = Config(host=args.host, port=args.port, data=Path(args.data) if args.data else None,
                     db=getattr(args, "db", None), max_sessions=getattr(args, "max_sessions", 8),
                     warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"),
-                    record=getattr(args, "record", True), max_training_runs=getattr(args, "max_training_runs", 1))
+                    record=getattr(args, "record", True), max_training_runs=getattr(args, "max_training_runs", 1),
+                    max_training_queue=getattr(args, "max_training_queue", 8),
+                    max_training_per_client=getattr(args, "max_training_per_client", 1),
+                    allowed_hosts=tuple(getattr(args, "allowed_hosts", ())),
+                    write_limit=getattr(args, "write_limit", None),
+                    identity_limit=getattr(args, "identity_limit", None))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

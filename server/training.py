@@ -1,7 +1,7 @@
 """Training on a level from the browser: a small pool of worker PROCESSES ("spawn") running train_agent.
 
-    pool = TrainingPool(max_running=1)
-    job = pool.submit(level_path, out_dir, steps=100_000, on_update=show, on_done=attach)
+    pool = TrainingPool(max_running=1, max_queued=8, per_client=1, per_client_waiting=1)
+    job = pool.submit(level_path, out_dir, steps=100_000, on_update=show, on_done=attach, client="author:ab12")
     pool.position(job)      # 0 while running, 1.. while queued
     pool.cancel(job)
 
@@ -9,7 +9,14 @@ Why processes: a training run keeps a core busy for minutes and holds the interp
 parts; in a thread it would starve the play loop. "spawn" (not fork) because JAX must not be forked once it has
 initialised (the server has). Workers run niced, so play stays responsive on a small machine.
 
-Runs beyond `max_running` wait in a FIFO queue. Each running job has a supervisor thread that reads the
+Who may run what (docs/agents.md, "Training belongs to someone"): every job has a `client` (the tab's author
+identity, else the tab). At most `per_client` runs of one client run at once and at most `per_client_waiting`
+of them wait; at most `max_queued` runs wait in all. A submit beyond a limit raises TrainingRefused with a
+message for the user. When a worker is free the next run is chosen round-robin across clients (the client
+served longest ago first, then the oldest of its runs), not first-come-first-served across all requests, so
+one client with many runs cannot hold the queue.
+
+Each running job has a supervisor thread that reads the
 worker's messages ("progress" dicts, then "done" or "error"), calls `on_update(job)` after each batch of
 progress and `on_done(job)` once at the end (state "done", "failed" or "cancelled"), then starts the next
 queued job. Cancelling a running job terminates its process at once (nothing of a cancelled run is kept; the
@@ -18,6 +25,7 @@ first jitted chunk can take a minute to compile, and `should_stop` is only polle
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import logging
@@ -33,6 +41,14 @@ log = logging.getLogger(__name__)
 
 WORKER_NICE = 5  # training yields the CPU to the play loop
 POLL_S = 0.2  # how often a supervisor checks its worker when no message comes
+DEFAULT_MAX_QUEUED = 8  # runs waiting in all (beyond that a submit is refused: "the queue is full")
+DEFAULT_PER_CLIENT = 1  # runs of one client running at once
+DEFAULT_PER_CLIENT_WAITING = 1  # runs of one client waiting at once
+SERVED_MEMORY = 1024  # clients whose last start the round-robin remembers (the oldest are forgotten first)
+
+
+class TrainingRefused(ValueError):
+    """A run was not queued: a per-client limit or the global queue cap. The message is for the user."""
 
 
 def train_worker(level_path: str, out_dir: str, steps: int, messages, options: dict) -> None:
@@ -66,6 +82,7 @@ class TrainingJob:
     options: dict
     on_update: Callable[[TrainingJob], None] | None = None
     on_done: Callable[[TrainingJob], None] | None = None
+    client: str = ""  # who asked for it (per-client limits, round-robin); "" = a client of its own
     state: str = "queued"  # "queued" | "running" | "done" | "failed" | "cancelled"
     progress: list[dict] = dataclasses.field(default_factory=list)
     result: dict | None = None  # the worker's "done" summary: steps, solve_rate, mean_return
@@ -90,37 +107,94 @@ class TrainingJob:
 
 
 class TrainingPool:
-    def __init__(self, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn"):
+    def __init__(self, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn", *,
+                 max_queued: int = DEFAULT_MAX_QUEUED, per_client: int = DEFAULT_PER_CLIENT,
+                 per_client_waiting: int = DEFAULT_PER_CLIENT_WAITING):
         if max_running < 1:
             raise ValueError(f"at least one training run must be allowed, got {max_running}")
+        if per_client < 1:
+            raise ValueError(f"at least one training run per client must be allowed, got {per_client}")
+        if max_queued < 0 or per_client_waiting < 0:
+            raise ValueError(f"queue limits cannot be negative, got {max_queued} and {per_client_waiting}")
         self.max_running = max_running
+        self.max_queued = max_queued
+        self.per_client = per_client
+        self.per_client_waiting = per_client_waiting
         self.worker = worker
         self._mp = multiprocessing.get_context(context)
         self._lock = threading.Lock()
         self._queued: list[TrainingJob] = []
         self._running: list[TrainingJob] = []
         self._ids = itertools.count(1)
+        self._starts = itertools.count(1)
+        self._served: collections.OrderedDict[str, int] = collections.OrderedDict()  # client -> its last start
         self._closed = False
 
     def submit(self, level_path: str | os.PathLike, out_dir: str | os.PathLike, *, steps: int,
                options: dict | None = None, on_update: Callable[[TrainingJob], None] | None = None,
-               on_done: Callable[[TrainingJob], None] | None = None) -> TrainingJob:
-        """Queue a run; it starts now if fewer than `max_running` runs are going."""
+               on_done: Callable[[TrainingJob], None] | None = None, client: str | None = None) -> TrainingJob:
+        """Queue a run for `client` (None: a client of its own); it starts now if a worker is free and the client
+        runs fewer than `per_client`. Raises TrainingRefused beyond a per-client limit or the queue cap."""
         if steps < 1:
             raise ValueError(f"steps must be positive, got {steps}")
-        job = TrainingJob(next(self._ids), Path(level_path), Path(out_dir), int(steps), dict(options or {}),
-                          on_update, on_done)
+        job_id = next(self._ids)
+        job = TrainingJob(job_id, Path(level_path), Path(out_dir), int(steps), dict(options or {}),
+                          on_update, on_done, client=client or f"job:{job_id}")
         with self._lock:
             if self._closed:
                 raise RuntimeError("the training pool is shut down")
+            self._check_limits(job.client)
             self._queued.append(job)
         self._start_next()
         return job
 
+    def _check_limits(self, client: str) -> None:
+        """Refuse a new run of `client` that could not start now and has no room to wait (lock held)."""
+        running = sum(1 for job in self._running if job.client == client)
+        if running < self.per_client and len(self._running) < self.max_running:
+            return  # it starts at once
+        waiting = sum(1 for job in self._queued if job.client == client)
+        if waiting >= self.per_client_waiting:
+            mine = running + waiting
+            raise TrainingRefused(
+                f"you already have {mine} training run{'s' if mine != 1 else ''} going or waiting (at most "
+                f"{self.per_client} running and {self.per_client_waiting} waiting per person): cancel one or "
+                "wait for it to finish")
+        if len(self._queued) >= self.max_queued:
+            raise TrainingRefused(
+                f"the training queue is full ({len(self._queued)} runs waiting for {self.max_running} "
+                f"worker{'s' if self.max_running != 1 else ''}): try again when a run has finished")
+
+    def _pick(self, queued: list[TrainingJob], served: dict[str, int],
+              running: list[TrainingJob] | None = None) -> TrainingJob | None:
+        """The next queued job to start: round-robin across clients (the one served longest ago, or never, first;
+        then the oldest job). With `running`, a client already at its per-client cap is skipped."""
+        busy = collections.Counter(job.client for job in running or ())
+        ready = [job for job in queued if busy[job.client] < self.per_client]
+        return min(ready, key=lambda job: (served.get(job.client, 0), job.id), default=None)
+
+    def _projected(self) -> list[TrainingJob]:
+        """The queued jobs in the order they would start if every run started at once (lock held)."""
+        served, rest, order = dict(self._served), list(self._queued), []
+        start = max(served.values(), default=0)
+        while rest:
+            job = self._pick(rest, served)
+            rest.remove(job)
+            order.append(job)
+            start += 1
+            served[job.client] = start
+        return order
+
     def position(self, job: TrainingJob) -> int:
-        """0 while running (or finished), else the job's place in the queue (1 = next to start)."""
+        """0 while running (or finished), else the job's expected place in the queue (1 = next to start)."""
         with self._lock:
-            return self._queued.index(job) + 1 if job in self._queued else 0
+            return self._projected().index(job) + 1 if job in self._queued else 0
+
+    def waits_for_own_run(self, job: TrainingJob) -> bool:
+        """True while a queued job waits because its client already runs `per_client` runs."""
+        with self._lock:
+            return job in self._queued and \
+                sum(1 for other in self._running if other.client == job.client) >= self.per_client
 
     def jobs(self) -> list[TrainingJob]:
         with self._lock:
@@ -162,9 +236,16 @@ class TrainingPool:
             with self._lock:
                 if self._closed or not self._queued or len(self._running) >= self.max_running:
                     return
-                job = self._queued.pop(0)
+                job = self._pick(self._queued, self._served, self._running)
+                if job is None:  # every waiting client is at its per-client cap
+                    return
+                self._queued.remove(job)
                 self._running.append(job)
                 job.state = "running"
+                self._served.pop(job.client, None)
+                self._served[job.client] = next(self._starts)
+                while len(self._served) > SERVED_MEMORY:  # forget the client served longest ago (it sorts first
+                    self._served.popitem(last=False)  # anyway: never-served counts as 0)
             job.out_dir.mkdir(parents=True, exist_ok=True)
             messages = self._mp.Queue()
             job.process = self._mp.Process(target=self.worker, name=f"kinetix-train-{job.id}", daemon=True,
@@ -212,6 +293,8 @@ class TrainingPool:
             elif kind == "error":
                 job.error = body
                 break
+        if job._cancel.is_set() and process.is_alive():  # cancelled before its process existed to terminate
+            process.terminate()
         process.join(timeout=30)
         if process.is_alive():
             process.kill()

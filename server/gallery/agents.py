@@ -1,12 +1,17 @@
 """Specialist agents attached to gallery levels (table `level_agents`, gallery migration 3).
 
     agents = LevelAgents(store, data_dir / "agents")
-    agent_id = agents.attach(level_id, "run-20261123-a1b2", steps=8192, solve_rate=0.9, mean_return=1.2)
+    agent_id = agents.attach(level_id, "run-20261123-a1b2", token=author_token, steps=8192, solve_rate=0.9,
+                             mean_return=1.2)
     agents.list(level_id)      # [{"id", "name", "path", "steps", "solve_rate", "mean_return", "created"}], newest first
 
 A row names a checkpoint directory by its plain name inside `agents_dir` (never a path), so a row can never
 point outside the data dir; `path` in the listing is the resolved directory. Attaching checks that the
 directory holds a checkpoint, so a row never points at a half-written run.
+
+Only the level's author attaches (a decision of issue 26): `attach` needs the author token that owns the level
+(or `admin=True`, for server-side tools), checked in the same transaction as the insert. Everyone who opens the
+level sees its specialists, so anyone else's agent must not land there; it stays with its tab (server.agent_tab).
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from pathlib import Path
 
 from sqlalchemy import BigInteger, Column, Float, Integer, MetaData, String, Table, select
 
-from server.gallery.store import Invalid, NotFound, Store, check_id, levels_t, now_ms
+from server.gallery.store import Forbidden, Invalid, NotFound, Store, Unauthorized, check_id, levels_t, now_ms
 
 CHECKPOINT_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 MAX_AGENT_NAME = 64
@@ -40,22 +45,49 @@ class LevelAgents:
             raise Invalid(f"agent run name {name!r}: expected a plain directory name")
         return self.agents_dir / name
 
-    def attach(self, level_id: str, run_name: str, *, steps: int, solve_rate: float | None = None,
-               mean_return: float | None = None, name: str | None = None) -> int:
-        """Record the checkpoint of run `run_name` as a specialist of `level_id`; returns the agent's id."""
+    def attach(self, level_id: str, run_name: str, *, token: str | None, steps: int, solve_rate: float | None = None,
+               mean_return: float | None = None, name: str | None = None, admin: bool = False) -> int:
+        """Record the checkpoint of run `run_name` as a specialist of `level_id`; returns the agent's id.
+
+        `token` must be the author token that owns the level (Unauthorized if missing or unknown, Forbidden if
+        another author's), unless `admin`."""
         level_id = check_id(level_id)
         checkpoint = self.run_dir(run_name) / "checkpoint"
         if not (checkpoint / "config.json").is_file():
             raise Invalid(f"agent run {run_name!r} has no checkpoint")
         label = (name or f"specialist {run_name}")[:MAX_AGENT_NAME]
         with self.store._write() as conn:
-            if conn.execute(select(levels_t.c.id).where(levels_t.c.id == level_id)).first() is None:
-                raise NotFound(f"no level {level_id!r} in the gallery")
+            self._check_author(conn, level_id, token, admin)
             result = conn.execute(level_agents_t.insert().values(
                 level_id=level_id, name=label, checkpoint=run_name, steps=int(steps),
                 solve_rate=None if solve_rate is None else float(solve_rate),
                 mean_return=None if mean_return is None else float(mean_return), created=now_ms()))
             return int(result.inserted_primary_key[0])
+
+    def owns(self, level_id: str, token: str | None) -> bool:
+        """Whether `token` is the author token of gallery level `level_id` (False for unknown ones)."""
+        try:
+            with self.store._read() as conn:
+                self._check_author(conn, check_id(level_id), token, admin=False)
+        except (Invalid, NotFound, Unauthorized, Forbidden):
+            return False
+        return True
+
+    def _check_author(self, conn, level_id: str, token: str | None, admin: bool) -> None:
+        row = conn.execute(select(levels_t.c.author_id).where(levels_t.c.id == level_id)).first()
+        if row is None:
+            raise NotFound(f"no level {level_id!r} in the gallery")
+        if admin:
+            return
+        if not token:
+            raise Unauthorized("only the level's author can attach an agent to it: this needs the author's token")
+        try:
+            author = self.store._author(conn, token)
+        except Unauthorized:
+            raise Unauthorized("only the level's author can attach an agent to it: unknown author token") from None
+        if row.author_id is None or author != row.author_id:
+            raise Forbidden(f"only the level's author can attach an agent to level {level_id!r}; this token does "
+                            "not own it (save your own copy of the level to keep your agent with it)")
 
     def list(self, level_id: str) -> list[dict]:
         """The specialists of a level, newest first (rows whose checkpoint is gone are left out)."""

@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from tests.e2e.conftest import Tab
+from tests.e2e.conftest import Tab, wait_js
 from tests.server.conftest import wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -36,7 +36,7 @@ def _session(app, page):
 
 def _reload(app, page):
     page.reload()
-    page.wait_for_function(READY, timeout=60_000)
+    wait_js(page, READY)
     return _session(app, page)
 
 
@@ -68,9 +68,8 @@ def test_draw_reload_restart_reload_keeps_the_drawing_and_undo(browser, tmp_path
         # The server stops and starts again on the same port under the open page: the page reconnects by itself
         # (a new session) and reopens its draft.
         with server(tmp_path, port) as app:
-            page.wait_for_function(f"document.getElementById('kinetix-session') && document.getElementById("
-                                   f"'kinetix-session').getAttribute('data-nonce') !== '{nonce}' && {READY}",
-                                   timeout=60_000)
+            wait_js(page, f"document.getElementById('kinetix-session') && document.getElementById("
+                          f"'kinetix-session').getAttribute('data-nonce') !== '{nonce}' && {READY}")
             session = _session(app, page)
             wait_until(lambda: session.editor.spec == drawn)
             session = _reload(app, page)  # and a reload after the restart too
@@ -94,14 +93,15 @@ def test_save_to_gallery_puts_the_level_in_the_address_and_a_stale_websocket_lin
             page.wait_for_url(re.compile(r"\?draft="), timeout=20_000)
             page.get_by_role("button", name="Save to gallery", exact=True).click()
             dialog = page.get_by_role("dialog")
-            dialog.locator("input").first.fill("E2E reload")
+            dialog.get_by_label("Name").fill("E2E reload")
             dialog.get_by_role("button", name="Save", exact=True).click()
             wait_until(lambda: session.gallery_id is not None)
             page.wait_for_url(f"**/?level={session.gallery_id}", timeout=20_000)
             # An old bookmark with the internal port of an earlier start still opens the level (through the one port).
             other = tab.context.new_page()
+            tab.watch_csp(other)
             other.goto(f"{app.url}?level={session.gallery_id}&websocket=ws://127.0.0.1:9")
-            other.wait_for_function(READY, timeout=60_000)
+            wait_js(other, READY)
             opened = _session(app, other)
             wait_until(lambda: opened.gallery_id == session.gallery_id)
             assert other.url == f"{app.url}?level={session.gallery_id}"

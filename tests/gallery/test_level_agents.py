@@ -10,7 +10,7 @@ from sqlalchemy import create_engine, text
 
 from server.gallery import migrations
 from server.gallery.agents import LevelAgents
-from server.gallery.store import Invalid, NotFound, Store
+from server.gallery.store import Forbidden, Invalid, NotFound, Store, Unauthorized
 from tests.gallery.conftest import level_doc
 
 
@@ -41,8 +41,9 @@ def test_a_version_2_gallery_upgrades_to_3_and_keeps_its_data(db_url, tmp_path):
     agents = LevelAgents(store, tmp_path / "agents")
     _checkpoint(tmp_path / "agents", "run-1")
     _checkpoint(tmp_path / "agents", "run-2")
-    first = agents.attach("old", "run-1", steps=2048, solve_rate=0.5, mean_return=0.1)
-    second = agents.attach("old", "run-2", steps=4096, name="better")
+    # The old level has no author: only an admin (server-side tool) attaches to it.
+    first = agents.attach("old", "run-1", token=None, admin=True, steps=2048, solve_rate=0.5, mean_return=0.1)
+    second = agents.attach("old", "run-2", token=None, admin=True, steps=4096, name="better")
     listed = agents.list("old")
     assert [row["id"] for row in listed] == [second, first], "newest first"
     assert listed[0]["name"] == "better" and listed[0]["steps"] == 4096 and listed[0]["solve_rate"] is None
@@ -53,18 +54,37 @@ def test_a_version_2_gallery_upgrades_to_3_and_keeps_its_data(db_url, tmp_path):
 
 
 def test_attach_refuses_bad_runs_and_lists_only_existing_checkpoints(store, tmp_path):
-    level_id, _ = store.create_level("level", level_doc())
+    level_id, token = store.create_level("level", level_doc())
     agents = LevelAgents(store, tmp_path / "agents")
     with pytest.raises(Invalid, match="no checkpoint"):
-        agents.attach(level_id, "missing", steps=1)
+        agents.attach(level_id, "missing", token=token, steps=1)
     for bad in ("../escape", "a/b", "", ".hidden"):
         with pytest.raises(Invalid, match="plain directory name"):
-            agents.attach(level_id, bad, steps=1)
+            agents.attach(level_id, bad, token=token, steps=1)
     _checkpoint(tmp_path / "agents", "run")
     with pytest.raises(NotFound):
-        agents.attach("nolevel", "run", steps=1)
-    agents.attach(level_id, "run", steps=1)
+        agents.attach("nolevel", "run", token=token, steps=1)
+    agents.attach(level_id, "run", token=token, steps=1)
     assert len(agents.list(level_id)) == 1
     (tmp_path / "agents" / "run" / "checkpoint" / "config.json").unlink()
     (tmp_path / "agents" / "run" / "checkpoint").rmdir()
     assert agents.list(level_id) == [], "a row whose checkpoint is gone is not offered"
+
+
+def test_only_the_levels_author_can_attach_an_agent(store, tmp_path):
+    level_id, author = store.create_level("mine", level_doc())
+    _, stranger = store.create_level("theirs", level_doc())  # another author, known to the gallery
+    agents = LevelAgents(store, tmp_path / "agents")
+    _checkpoint(tmp_path / "agents", "run")
+    for token, error, says in ((None, Unauthorized, "needs the author's token"),
+                               ("not-a-token", Unauthorized, "unknown author token"),
+                               (stranger, Forbidden, "does not own it")):
+        with pytest.raises(error, match=says):
+            agents.attach(level_id, "run", token=token, steps=1)
+    assert agents.list(level_id) == [], "a refused attach leaves no row"
+    assert not agents.owns(level_id, stranger) and not agents.owns(level_id, None)
+    assert agents.owns(level_id, author) and not agents.owns("nolevel", author)
+    agents.attach(level_id, "run", token=author, steps=1)
+    assert [row["steps"] for row in agents.list(level_id)] == [1]
+    agents.attach(level_id, "run", token=None, admin=True, steps=2)  # the admin (server-side tools) may
+    assert len(agents.list(level_id)) == 2

@@ -1,6 +1,7 @@
 """jax2d.jit: jax.jit with the engine's XLA options, and the same physics as plain jax.jit."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -12,12 +13,80 @@ from tests.jax2d import scenes
 def test_jit_passes_the_engine_options_and_lets_the_caller_add_or_override(monkeypatch) -> None:
     seen = []
     monkeypatch.setattr(compiling.jax, "jit", lambda fun, **kwargs: seen.append(kwargs) or fun)
-    jax2d.jit(len, static_argnames="x")
-    jax2d.jit(len, compiler_options={"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False})
-    # Each call jits twice: with the options for calls from Python, without them for nested calls.
-    assert seen[:2] == [{"compiler_options": jax2d.COMPILER_OPTIONS, "static_argnames": "x"}, {"static_argnames": "x"}]
-    assert seen[2]["compiler_options"] == {"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False}
+    monkeypatch.setattr(compiling, "_only_platform", lambda: "cpu")
+    plain = jax2d.jit(len, static_argnames="x")
+    assert seen == [{"static_argnames": "x"}]  # the nested version, made at once
+    plain("ab")  # the CPU's top-level version, made on the first call from Python
+    assert seen[1] == {"compiler_options": jax2d.COMPILER_OPTIONS, "static_argnames": "x"}
+    jax2d.jit(len, compiler_options={"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False})("ab")
+    assert seen[3]["compiler_options"] == {"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False}
     assert jax2d.COMPILER_OPTIONS == {"xla_cpu_use_fusion_emitters": False}  # the caller's dict did not leak in
+
+
+@pytest.mark.parametrize("platform", ["gpu", "cuda", "rocm", "tpu", "GPU"])
+def test_no_cpu_option_reaches_another_platform(platform: str) -> None:
+    """XLA refuses an option its backend lacks: every CUDA compile failed on xla_cpu_use_fusion_emitters."""
+    assert compiling.options_for("cpu", jax2d.COMPILER_OPTIONS) == jax2d.COMPILER_OPTIONS
+    assert compiling.options_for(platform, jax2d.COMPILER_OPTIONS) == {}
+    mixed = {"xla_cpu_enable_fast_math": False, "xla_gpu_autotune_level": 0, "xla_tpu_x": 1, "xla_llvm_y": 2}
+    kept = compiling.options_for(platform, mixed)
+    assert not any(name.startswith("xla_cpu_") for name in kept) and kept["xla_llvm_y"] == 2
+    assert ("xla_gpu_autotune_level" in kept) == (platform.lower() != "tpu")
+    assert ("xla_tpu_x" in kept) == (platform == "tpu")
+    assert compiling.options_for("cpu", mixed) == {"xla_cpu_enable_fast_math": False, "xla_llvm_y": 2}
+
+
+def test_a_call_on_a_gpu_compiles_without_the_cpu_options(monkeypatch) -> None:
+    """Where a process has several backends, each call's platform picks its own top-level jit."""
+    seen = []
+    monkeypatch.setattr(compiling.jax, "jit", lambda fun, **kwargs: seen.append(kwargs) or fun)
+    monkeypatch.setattr(compiling, "_only_platform", lambda: None)  # as on a machine with a GPU
+    monkeypatch.setattr(compiling, "call_platform", lambda leaves, fixed=None: "gpu")
+    jitted = jax2d.jit(len)
+    jitted("ab")
+    assert seen[1] == {"compiler_options": None}
+    monkeypatch.setattr(compiling, "call_platform", lambda leaves, fixed=None: "cpu")
+    jitted("ab")
+    assert seen[2] == {"compiler_options": jax2d.COMPILER_OPTIONS}
+    jitted("abc")  # each platform's version is made once
+    assert len(seen) == 3
+
+
+def test_the_call_platform_follows_jax_placement_rules() -> None:
+    """Committed arguments first, then the jit's own device or backend, then jax.default_device, then the
+    default backend (what JAX itself does with a call)."""
+    cpu = jax.devices("cpu")[0]
+    loose, committed = jnp.ones(2), jax.device_put(jnp.ones(2), cpu)
+    assert not loose.committed and committed.committed
+    assert compiling.call_platform([loose, committed], fixed="tpu", default_device="gpu",
+                                   default_backend="gpu") == "cpu"
+    assert compiling.call_platform([loose, 3], fixed="tpu", default_device="gpu", default_backend="gpu") == "tpu"
+    assert compiling.call_platform([loose], default_device="gpu", default_backend="tpu") == "gpu"
+    assert compiling.call_platform([loose], default_device=cpu, default_backend="gpu") == "cpu"
+    assert compiling.call_platform([loose], default_backend="gpu") == "gpu"
+    with jax.default_device(cpu):  # read from JAX's config when not given
+        assert compiling.call_platform([loose], default_backend="gpu") == "cpu"
+    assert compiling._fixed_platform({"device": cpu}) == "cpu"
+    assert compiling._fixed_platform({"backend": "gpu"}) == "gpu"
+    sharding = jax.sharding.SingleDeviceSharding(cpu)
+    assert compiling._fixed_platform({"in_shardings": (None, sharding)}) == "cpu"
+    assert compiling._fixed_platform({"static_argnames": "x"}) is None
+
+
+def test_a_jitted_step_runs_on_the_cpu_under_a_default_device_and_with_committed_arguments() -> None:
+    capacity = jax2d.Capacity(polygons=5, circles=2, joints=2, thrusters=1, max_vertices=4)
+    state, _ = scenes.random_scene(2, capacity)
+    step = jax2d.jit(jax2d.step)
+    motor, thrust = np.zeros(capacity.joints, np.float32), np.zeros(capacity.thrusters, np.float32)
+    plain = step(state, jax2d.SimParams(), motor, thrust)
+    cpu = jax.devices("cpu")[0]
+    with jax.default_device(cpu):
+        placed = step(state, jax2d.SimParams(), motor, thrust)
+    committed = step(jax.device_put(state, cpu), jax2d.SimParams(), motor, thrust)
+    assert committed.bodies.position.committed
+    for other in (placed, committed):
+        np.testing.assert_array_equal(np.asarray(other.bodies.position), np.asarray(plain.bodies.position))
+    assert float(np.max(np.abs(np.asarray(plain.bodies.position) - np.asarray(state.bodies.position)))) > 0
 
 
 def test_an_unknown_option_reaches_xla_and_is_refused() -> None:

@@ -18,6 +18,7 @@ from viser_client import KeysSocket
 from kinetix.agents.policy import Policy
 from kinetix.formats import ThrusterSpec, build
 from kinetix.levels import to_document
+from kinetix.recording import read_recording
 from server.agent_play import AgentRunner, _overlay_box, action_text
 from server.agent_tab import BEST, NEWEST, AgentLink
 from server.gallery.tab import GalleryLink
@@ -120,14 +121,12 @@ def _race(app, make_client, *, agent_policy, hold_thruster: bool):
     GalleryLink(app.store).open(session, level_id)
     keys = KeysSocket(app.port, nonce)
     try:
-        with session.lock:  # no step can happen until the human's keys are in place
-            race = app.agents.race(session, policy=agent_policy)
-            session.toggle_pause()
-        if hold_thruster:
-            keys.down("Digit1")
-            _wait(lambda: "Digit1" in session.held)
+        race = app.agents.race(session, policy=agent_policy)
+        assert session.mode == "ready", "a race waits for the human's first key"
+        time.sleep(0.3)
+        assert session._steps == 0 and race.agent.steps == 0, "neither side moved before the first key"
         start = client.count()
-        session.toggle_pause()
+        keys.down("Digit1" if hold_thruster else "Space")  # the first control key starts the race and acts at once
         _wait(lambda: race.winner is not None, timeout=120)
         assert race.recorded.wait(30)
         _wait(lambda: len(client.frames(start)) > 0)
@@ -143,6 +142,10 @@ def test_race_human_wins_against_an_agent_that_misses_and_both_plays_are_recorde
     assert race.agent.result is None and race.agent.steps == 9, "the agent stepped in lockstep"
     stats = app.store.stats(level_id)
     assert (stats["human_plays"], stats["human_solved"], stats["agent_plays"], stats["agent_solved"]) == (1, 1, 1, 0)
+    # The race set the best time, and its recording is the best run (it used to be recorded without a file).
+    assert stats["best_human_steps"] == 9 and stats["has_best_run"]
+    best = read_recording(app.agents.runs.best_run_file(level_id), frames=False)
+    assert best.num_steps == 9 and best.solved and best.metadata["player"] == "race"
     _wait(lambda: "You win!" in _status(client))
     _wait(lambda: session.mode == "ended")
     frame = session.render()
@@ -164,10 +167,11 @@ def test_race_agent_wins_when_the_human_fires_the_thruster(app, make_client):
 
 def test_training_queues_beyond_the_cap_shows_progress_attaches_and_cancels(app, make_client, tmp_path):
     FAKE_TRAINING["release"] = str(tmp_path / "release")
-    level_id, _ = app.store.create_level("train me", to_document(build(falling_win_spec())))
+    level_id, token = app.store.create_level("train me", to_document(build(falling_win_spec())))
     first_client, second_client = make_client(app), make_client(app)
     first, _ = _session(app, first_client)
     second, _ = _session(app, second_client)
+    first.author_token = token  # the level's author (the browser sends its token with the /keys hello)
     GalleryLink(app.store).open(first, level_id)
     first_job = app.agents.train(first, steps=4000)
     second_job = app.agents.train(second, steps=4000)  # a new, unsaved level: its specialist lives with the tab
@@ -234,9 +238,10 @@ def test_watch_refuses_a_missing_specialist_with_a_message(app, make_client):
 def test_a_tiny_real_training_attaches_a_specialist_that_watch_agent_plays(app, make_client):
     from server.training import TrainingPool
 
-    level_id, _ = app.store.create_level("tiny training", to_document(build(falling_win_spec())))
+    level_id, token = app.store.create_level("tiny training", to_document(build(falling_win_spec())))
     client = make_client(app)
     session, _ = _session(app, client)
+    session.author_token = token
     GalleryLink(app.store).open(session, level_id)
     pool = TrainingPool(max_running=1)  # the real worker: kinetix.agents.train_agent in a spawned process
     link = AgentLink(store=app.store, agents_dir=app.agents.agents_dir, pool=pool,
@@ -292,10 +297,11 @@ def test_training_refuses_bad_step_counts(app, make_client):
 
 def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tmp_path):
     FAKE_TRAINING["release"] = str(tmp_path / "release")
-    level_id, _ = app.store.create_level("keeps training", to_document(build(falling_win_spec())))
+    level_id, token = app.store.create_level("keeps training", to_document(build(falling_win_spec())))
     keeper, leaver = make_client(app), make_client(app)
     kept, _ = _session(app, keeper)
     left, _ = _session(app, leaver)
+    kept.author_token = token
     GalleryLink(app.store).open(kept, level_id)
     kept_job = app.agents.train(kept, steps=4000)
     left_job = app.agents.train(left, steps=4000)  # unsaved level, queued behind the first
@@ -304,7 +310,7 @@ def test_a_closed_tabs_run_on_an_unsaved_level_is_cancelled(app, make_client, tm
     _wait(lambda: left.closed)
     (tmp_path / "release").touch()
     assert kept_job.settled.wait(60) and left_job.settled.wait(60)
-    assert kept_job.state == "done", "a gallery level's run goes on: its specialist is attached for everyone"
+    assert kept_job.state == "done", "its author's run goes on: its specialist is attached for everyone"
     assert left_job.state == "cancelled" and not left_job.out_dir.exists()
     assert len(app.agents.level_agents.list(level_id)) == 1
 
@@ -334,13 +340,14 @@ def test_a_specialist_attaches_to_a_level_whose_id_starts_with_a_dash(app, make_
 
     FAKE_TRAINING["release"] = str(tmp_path / "release")
     (tmp_path / "release").touch()
-    source, _ = app.store.create_level("dash", to_document(build(falling_win_spec())))
+    source, token = app.store.create_level("dash", to_document(build(falling_win_spec())))
     with app.store._write() as conn:  # gallery ids are url-safe base64: '-' and '_' can come first
         conn.execute(text("INSERT INTO levels (id, name, description, author_id, created, updated, parent_id, size, "
                           "level_json, thumbnail) SELECT '-dash-first', name, description, author_id, created, "
                           "updated, NULL, size, level_json, thumbnail FROM levels WHERE id = :src"), {"src": source})
     client = make_client(app)
     session, _ = _session(app, client)
+    session.author_token = token
     GalleryLink(app.store).open(session, "-dash-first")
     job = app.agents.train(session, steps=4000)
     assert job.settled.wait(60) and job.state == "done"

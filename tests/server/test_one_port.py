@@ -63,3 +63,12 @@ def test_relay_keeps_viser_subprotocol(app):
                                         open_timeout=10) as ws:
         assert ws.subprotocol == protocol
     time.sleep(0.1)
+
+
+def test_a_cross_site_page_cannot_open_viser_through_the_relay(app):
+    # The side server's Host/Origin checks (server/web_security.py) now guard viser's websocket too.
+    protocol = f"viser-v{viser.__version__}"
+    with pytest.raises(websockets.InvalidStatus) as refused:
+        websockets.sync.client.connect(f"ws://127.0.0.1:{app.port}/", subprotocols=[protocol], open_timeout=10,
+                                       additional_headers={"Origin": "http://attacker.example"})
+    assert refused.value.response.status_code == 403

@@ -1,5 +1,6 @@
 """server.training.TrainingPool with a cheap fake worker (spawned processes, no JAX): the cap queues runs, queue
-positions move up, cancel stops queued and running runs, a dying worker is reported, progress reaches the caller."""
+positions move up, cancel stops queued and running runs, a dying worker is reported, progress reaches the caller;
+per-client limits, the global queue cap and the round-robin order across clients (issue 26)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import time
 import pytest
 from fake_training import fake_train_worker
 
-from server.training import TrainingPool
+from server.training import TrainingPool, TrainingRefused
 
 
 def _wait(predicate, timeout=60.0):
@@ -27,10 +28,10 @@ def pool():
     pool.close()
 
 
-def _submit(pool, tmp_path, name, **options):
+def _submit(pool, tmp_path, name, client=None, **options):
     done = threading.Event()
     updates = []
-    job = pool.submit(tmp_path / "level.json", tmp_path / name, steps=4000,
+    job = pool.submit(tmp_path / "level.json", tmp_path / name, steps=4000, client=client,
                       options={"release": str(tmp_path / f"release-{name}"), **options},
                       on_update=lambda job: updates.append((job.state, len(job.progress))),
                       on_done=lambda job: done.set())
@@ -82,9 +83,65 @@ def test_a_worker_that_dies_is_reported_as_failed(pool, tmp_path):
     assert job.state == "failed" and "exited with code 3" in job.error
 
 
+def test_the_queue_takes_turns_between_clients_not_first_come_first_served(tmp_path):
+    pool = TrainingPool(max_running=1, worker=fake_train_worker, per_client=1, per_client_waiting=3)
+    try:
+        a1, a1_done, _ = _submit(pool, tmp_path, "a1", client="alice")
+        a2, a2_done, _ = _submit(pool, tmp_path, "a2", client="alice")
+        a3, a3_done, _ = _submit(pool, tmp_path, "a3", client="alice")
+        b1, b1_done, _ = _submit(pool, tmp_path, "b1", client="bob")
+        c1, c1_done, _ = _submit(pool, tmp_path, "c1", client="carol")
+        b2, b2_done, _ = _submit(pool, tmp_path, "b2", client="bob")
+        assert a1.state == "running"
+        # alice was served last: bob and carol go first, then one run of each client in turn (FIFO would be
+        # a2, a3, b1, c1, b2).
+        expected = [b1, c1, a2, b2, a3]
+        assert [pool.position(job) for job in expected] == [1, 2, 3, 4, 5]
+        started = [a1]
+        for job, done in ((a1, a1_done), (b1, b1_done), (c1, c1_done), (a2, a2_done), (b2, b2_done)):
+            pool.cancel(job)  # frees the worker: the next run in turn starts
+            assert done.wait(30)
+            _wait(lambda: any(other.state == "running" for other in expected if other not in started))
+            started += [other for other in expected if other.state == "running" and other not in started]
+        assert started == [a1, *expected]
+        pool.cancel(a3)
+        assert a3_done.wait(30)
+    finally:
+        pool.close()
+
+
+def test_per_client_limits_and_the_queue_cap_refuse_with_a_clear_message(tmp_path):
+    pool = TrainingPool(max_running=2, worker=fake_train_worker, max_queued=2, per_client=1, per_client_waiting=1)
+    try:
+        a1, _, _ = _submit(pool, tmp_path, "a1", client="alice")
+        a2, _, _ = _submit(pool, tmp_path, "a2", client="alice")
+        assert a1.state == "running"
+        assert a2.state == "queued" and pool.waits_for_own_run(a2), "one running run per client, a worker is free"
+        with pytest.raises(TrainingRefused, match="already have 2 training runs going or waiting"):
+            _submit(pool, tmp_path, "a3", client="alice")
+        assert not (tmp_path / "a3").exists()
+        b1, _, _ = _submit(pool, tmp_path, "b1", client="bob")
+        assert b1.state == "running", "another client takes the free worker"
+        c1, _, _ = _submit(pool, tmp_path, "c1", client="carol")
+        assert c1.state == "queued" and not pool.waits_for_own_run(c1)
+        with pytest.raises(TrainingRefused, match=r"the training queue is full \(2 runs waiting"):
+            _submit(pool, tmp_path, "d1", client="dave")
+        assert len(pool.jobs()) == 4
+        pool.cancel(a1)  # alice's worker frees: carol (never served) goes before alice's second run
+        _wait(lambda: c1.state == "running")
+        assert a2.state == "queued" and pool.position(a2) == 1
+    finally:
+        pool.close()
+    assert all(not job.process.is_alive() for job in (a1, b1, c1))
+
+
 def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="at least one"):
         TrainingPool(max_running=0)
+    with pytest.raises(ValueError, match="per client"):
+        TrainingPool(per_client=0)
+    with pytest.raises(ValueError, match="cannot be negative"):
+        TrainingPool(max_queued=-1)
     pool = TrainingPool(max_running=1, worker=fake_train_worker)
     with pytest.raises(ValueError, match="steps must be positive"):
         pool.submit("level.json", "out", steps=0)

@@ -20,6 +20,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import weakref
 from pathlib import Path
 
 import websockets
@@ -89,6 +90,8 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
     if gallery_router is not None:
         app.include_router(gallery_router, prefix="/api")
 
+    opened: weakref.WeakSet = weakref.WeakSet()  # sessions whose page query was handled (the first hello)
+
     @app.websocket("/keys")
     async def keys(socket: WebSocket) -> None:
         await socket.accept()
@@ -111,9 +114,11 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 session.author_token = hello["token"]  # the gallery author token the browser keeps
             await socket.send_text(json.dumps({"type": "ready"}))
             query = hello.get("query")
-            if isinstance(query, str) and manager.on_query is not None:
+            if isinstance(query, str) and manager.on_query is not None and session not in opened:
                 # e.g. /?level=<gallery id>&mode=play, ?draft=<id>, or "" (a new tab gets a draft id): the page's
-                # query reaches Python only through this socket.
+                # query reaches Python only through this socket. Once per session: keys.js opens /keys again after
+                # a network blip, and that must not reopen the level under the player.
+                opened.add(session)
                 await asyncio.get_running_loop().run_in_executor(None, manager.on_query, session, query)
             while True:
                 event = await _receive(socket)

@@ -205,3 +205,23 @@ def test_a_malformed_draft_is_reported_and_the_tab_goes_on_with_a_new_one(app):
     finally:
         keys.close()
         client.close()
+
+
+def test_a_second_key_socket_of_the_same_tab_does_not_reopen_the_level(app):
+    # keys.js opens /keys again after a network blip, with the same nonce and address: the play must go on.
+    client, keys, session = _open_tab(app)
+    again = None
+    try:
+        wait_until(lambda: _address(client).startswith("?draft="))
+        session._edit_call("click", 2.0, 2.0)
+        wait_until(lambda: app.drafts.flush() and (app.drafts.directory / f"{_address(client)[7:]}.json").exists())
+        spec = session.editor.spec
+        session.play()
+        keys.close()
+        again = KeysSocket(app.port, session.nonce, query=_address(client))
+        time.sleep(0.5)
+        assert session.mode != "edit" and session.editor.spec is spec
+    finally:
+        if again is not None:
+            again.close()
+        client.close()

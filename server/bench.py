@@ -93,7 +93,7 @@ def _latency(app, chromium: str, samples: int) -> tuple[list[float], float]:
 def _wire_latency(app, samples: int) -> tuple[list[float], list[float]]:
     """ms from sending a key on /keys to the frame batch carrying its ack arriving at a protocol client: through the
     user's port (viser's websocket relayed by the side server, as browsers get it) and, for the relay's cost, straight
-    to viser's internal port. The two tabs take turns, so a change in the machine's load hits both alike."""
+    to viser's internal port. The two tabs take turns (in alternating order), so the machine's load hits both alike."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
     from viser_client import KeysSocket, ViserTestClient, session_nonce
 
@@ -110,7 +110,8 @@ def _wire_latency(app, samples: int) -> tuple[list[float], list[float]]:
         latencies: tuple[list[float], list[float]] = ([], [])
         for i in range(samples):
             code = "ArrowRight" if i % 2 == 0 else "ArrowLeft"
-            for (client, keys), out in zip(tabs, latencies, strict=True):
+            for k in (0, 1) if i % 2 == 0 else (1, 0):  # who goes first alternates: no order bias
+                (client, keys), out = tabs[k], latencies[k]
                 start = client.count()
                 t0 = time.perf_counter()
                 seq = keys.down(code)

@@ -8,8 +8,8 @@
   stacks and the gallery level it came from (server.drafts writes it atomically on its own thread);
 - the /keys hello carries the page's query, so a reload, a reopened link or a reconnect after a server restart
   with `?draft=<id>` reopens that draft, with its undo history;
-- saving to the gallery discards the draft (the address becomes `?level=<new id>`); old drafts expire
-  (server.drafts.DRAFT_MAX_AGE_S, DRAFT_CAP).
+- saving to the gallery discards the draft (the address becomes `?level=<new id>`), so does the tab's "Discard this
+  draft" button (the tab starts a new level); old drafts expire (server.drafts.DRAFT_MAX_AGE_S, DRAFT_CAP).
 
 No "leave this page?" prompt: an edit reaches the server before the next frame and the server writes it
 whether or not the tab stays, and a "Save to gallery" runs to its end on the server even if the tab goes.
@@ -71,7 +71,13 @@ class DraftLink(PlayListener):
     def session_opened(self, session) -> None:
         if not hasattr(session.editor, "history"):  # a stand-in editor (play only, tests) has nothing to keep
             return
-        address = session.client.gui.add_html(_address_html(""))
+        gui = session.client.gui
+        address = gui.add_html(_address_html(""))
+        with gui.add_folder("Draft", expand_by_default=False):
+            gui.add_markdown("This tab's work is kept on the server as a draft, with its undo history, so a reload "
+                             "or the link in the address bar brings it back.")
+            discard = gui.add_button("Discard this draft")
+        discard.on_click(lambda _event: self.discard(session))
         with self._lock:
             self._tabs[session] = TabDraft(address=address)
 
@@ -163,6 +169,26 @@ class DraftLink(PlayListener):
                 tab.gallery_seen, tab.clean = session.gallery_id, None
             self._show(tab, "?" + urlencode({"draft": draft_id}))
         return True
+
+    def discard(self, session) -> None:
+        """Throw the tab's draft away: the file goes, the tab starts a new level (no undo) under a new draft id."""
+        from server.editor.levelio import new_level
+
+        tab = self.tab(session)
+        if tab is None or tab.draft_id is None:
+            return
+        with session.lock:
+            self.store.discard(tab.draft_id)
+            session.stop()
+            size = session.editor.size
+            session.editor.load_draft(new_level(size), size, [], [])
+            tab.draft_id, tab.gallery_seen, tab.clean = self.store.new_id(), None, None
+            tab.queued = history_signature(session.editor)  # nothing to keep until the next edit
+            session.gallery_id = None
+            if session.panel is not None and hasattr(session.panel, "refresh"):
+                session.panel.refresh()
+            session.refresh(force=True)
+            self._show(tab, "?" + urlencode({"draft": tab.draft_id}))
 
     # ------------------------------------------------------------------ helpers
 

@@ -225,3 +225,21 @@ def test_a_second_key_socket_of_the_same_tab_does_not_reopen_the_level(app):
         if again is not None:
             again.close()
         client.close()
+
+
+def test_discard_this_draft_removes_the_file_and_starts_a_new_level(app):
+    client, keys, session = _open_tab(app)
+    try:
+        wait_until(lambda: _address(client).startswith("?draft="))
+        old = _address(client)[len("?draft="):]
+        walls = len(session.editor.spec.bodies)
+        session.editor.set_tool("circle")
+        session._edit_call("click", 2.0, 2.0)
+        wait_until(lambda: app.drafts.flush() and (app.drafts.directory / f"{old}.json").exists())
+        client.click_button("Discard this draft")
+        wait_until(lambda: _address(client).startswith("?draft=") and old not in _address(client))
+        assert not (app.drafts.directory / f"{old}.json").exists()
+        assert len(session.editor.spec.bodies) == walls and not session.editor.can_undo
+    finally:
+        keys.close()
+        client.close()

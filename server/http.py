@@ -112,14 +112,15 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 return
             if isinstance(hello.get("token"), str) and hello["token"]:
                 session.author_token = hello["token"]  # the gallery author token the browser keeps
-            await socket.send_text(json.dumps({"type": "ready"}))
             query = hello.get("query")
             if isinstance(query, str) and manager.on_query is not None and session not in opened:
                 # e.g. /?level=<gallery id>&mode=play, ?draft=<id>, or "" (a new tab gets a draft id): the page's
                 # query reaches Python only through this socket. Once per session: keys.js opens /keys again after
-                # a network blip, and that must not reopen the level under the player.
+                # a network blip, and that must not reopen the level under the player. Before "ready", so keys
+                # pressed meanwhile (keys.js queues them) act on the opened level, not on the placeholder.
                 opened.add(session)
                 await asyncio.get_running_loop().run_in_executor(None, manager.on_query, session, query)
+            await socket.send_text(json.dumps({"type": "ready"}))
             while True:
                 event = await _receive(socket)
                 kind, code = event.get("type"), event.get("code")

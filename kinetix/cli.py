@@ -135,6 +135,10 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--identity-limit", type=float, default=None, metavar="N",
                         help="new gallery author or voter identities per hour per client address; 0 = no limit "
                              "(default: 10)")
+    parser.add_argument("--recent-recordings", type=positive_int, metavar="N",
+                        help="most recordings kept in <data>/recordings/recent, oldest removed first (default: 32)")
+    parser.add_argument("--recent-recordings-mb", type=positive_int, metavar="MB",
+                        help="most megabytes kept in <data>/recordings/recent, oldest removed first (default: 64)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:
@@ -192,22 +196,30 @@ def _bench_record_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--level", required=True, metavar="FILE|DIR|random-s|random-m|random-l",
-                        help="a level file, a directory of level files, or random levels of a size class")
-    parser.add_argument("--steps", type=positive_int, default=1_000_000, help="env steps to train (default: 1000000)")
+    # Settings that define the run default to None here: `--resume DIR` fills the ones not given from the saved
+    # run (and refuses ones that differ); kinetix.agents.train.run applies the defaults named in the help.
+    parser.add_argument("--level", metavar="FILE|DIR|random-s|random-m|random-l",
+                        help="a level file, a directory of level files, or random levels of a size class "
+                             "(required unless --resume)")
+    parser.add_argument("--steps", type=positive_int, default=None, help="env steps to train (default: 1000000)")
     parser.add_argument("--out", metavar="DIR", help="output directory (default: runs/<level>-<time>)")
     parser.add_argument("--curriculum", choices=["dr", "sfl", "plr"],
                         help="for random levels: domain randomisation (default), sampling for learnability, "
                              "prioritized level replay")
     parser.add_argument("--init", metavar="general|DIR", help="fine-tune this agent instead of starting from scratch")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
-    parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length per update (default: 64)")
-    parser.add_argument("--updates-per-call", type=positive_int, default=4,
+    parser.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
+    parser.add_argument("--num-envs", type=positive_int, default=None, help="parallel environments (default: 32)")
+    parser.add_argument("--num-steps", type=positive_int, default=None, help="rollout length per update (default: 64)")
+    parser.add_argument("--updates-per-call", type=positive_int, default=None,
                         help="updates per jitted chunk between progress reports (default: 4)")
-    parser.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate (default: 3e-4)")
-    parser.add_argument("--network", choices=["entity", "flat", "pixels"], default="entity",
+    parser.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: 3e-4)")
+    parser.add_argument("--network", choices=["entity", "flat", "pixels"], default=None,
                         help="policy network (default: entity, permutation-invariant)")
+    parser.add_argument("--width", type=positive_int, default=None, help="network layer width (default: 64)")
+    parser.add_argument("--hidden", type=positive_int, default=None, help="network hidden size (default: 128)")
+    parser.add_argument("--update-epochs", type=positive_int, default=None, help="PPO epochs per update (default: 4)")
+    parser.add_argument("--num-minibatches", type=positive_int, default=None,
+                        help="PPO minibatches per epoch (default: 4)")
     parser.add_argument("--observation", choices=["entity", "flat", "pixels"], default=None,
                         help="observation type (default: the network's)")
     parser.add_argument("--dense-reward", type=float, default=None,
@@ -217,6 +229,19 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this much wall-clock time, compiling included (default: no limit)")
     parser.add_argument("--target-solve-rate", type=float, default=None, metavar="RATE",
                         help="stop once the training solve rate averages RATE over the last 8 updates")
+    parser.add_argument("--resume", metavar="DIR",
+                        help="continue the run in DIR (its output directory) from its last checkpoint; settings "
+                             "not given are the run's own, settings given must equal them")
+    parser.add_argument("--checkpoint-every", type=float, default=None, metavar="MINUTES",
+                        help="also write the checkpoint and training state every MINUTES of wall-clock time "
+                             "(default: only at the end)")
+    parser.add_argument("--checkpoint-every-updates", type=positive_int, default=None, metavar="N",
+                        help="also write them every N updates (rounded up to whole chunks)")
+    parser.add_argument("--coordinator", metavar="HOST:PORT",
+                        help="multi-host training: address of process 0's coordinator (with --num-processes and "
+                             "--process-id; without all three, a cluster environment JAX detects is used)")
+    parser.add_argument("--num-processes", type=positive_int, default=None, help="multi-host: processes in all")
+    parser.add_argument("--process-id", type=int, default=None, help="multi-host: this process's index, 0..N-1")
     parser.add_argument("--record-command", action="store_true", default=True, help=argparse.SUPPRESS)
 
 

@@ -44,6 +44,8 @@ class Config:
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
     record: bool = True  # record every play to MCAP (server.recorder); the tab's Recordings folder needs it
     drafts: bool = True  # keep every tab's work as a draft in <data>/drafts (server.draft_tab): reloads lose nothing
+    recent_max_files: int | None = None  # cap on recordings/recent (None: server.recorder.RECENT_MAX_FILES)
+    recent_max_bytes: int | None = None  # its cap in bytes (None: server.recorder.RECENT_MAX_BYTES)
     agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
     warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
     max_training_runs: int = 1  # training worker processes at once; more runs queue
@@ -205,7 +207,9 @@ class App:
             directory = self.store.recordings_dir
         else:
             directory = Path(self.config.data or default_data_dir()) / "recordings"
-        self.recorder = PlayRecorder(directory, enabled=self.config.record)
+        caps = {k: v for k, v in (("max_files", self.config.recent_max_files),
+                                  ("max_bytes", self.config.recent_max_bytes)) if v is not None}
+        self.recorder = PlayRecorder(directory, enabled=self.config.record, **caps)
         if self.config.record:
             removed = self.recorder.clean_up()
             if removed:
@@ -268,6 +272,10 @@ class App:
             self._socket.close()
 
 
+def _megabytes(value: int | None) -> int | None:
+    return None if value is None else value << 20
+
+
 def serve(args) -> int:
     """`kinetix serve`: start, print the URL, run until Ctrl+C (or SIGTERM), then shut down cleanly."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -281,7 +289,9 @@ def serve(args) -> int:
                     max_training_per_client=getattr(args, "max_training_per_client", 1),
                     allowed_hosts=tuple(getattr(args, "allowed_hosts", ())),
                     write_limit=getattr(args, "write_limit", None),
-                    identity_limit=getattr(args, "identity_limit", None))
+                    identity_limit=getattr(args, "identity_limit", None),
+                    recent_max_files=getattr(args, "recent_recordings", None),
+                    recent_max_bytes=_megabytes(getattr(args, "recent_recordings_mb", None)))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

@@ -16,7 +16,11 @@ or a slow machine does not stretch a recording.
 
 Retention: `recent/` holds each tab's last play only (the previous one is deleted when the next one is
 finished); after a tab closes its last file is kept for RECENT_KEEP_S and then swept (at start-up and whenever a
-play finishes). The gallery keeps best runs elsewhere (server.gallery.runs).
+play finishes). On top of that `recent/` is capped at `max_files` files and `max_bytes` bytes (oldest removed
+first; the last play of a tab still open is never removed, and there are at most max_sessions of those), so disk
+use stays bounded however many tabs come and go. Partial files (`.part`) that no live process owns are removed at
+start-up and on each sweep (kinetix.recording.remove_partial_files: the writing process holds a lock on them).
+The gallery keeps best runs elsewhere (server.gallery.runs).
 """
 
 from __future__ import annotations
@@ -44,6 +48,8 @@ log = logging.getLogger(__name__)
 
 RECENT_DIR = "recent"
 RECENT_KEEP_S = 3600.0  # how long the last play of a closed tab stays in recent/
+RECENT_MAX_FILES = 32  # recent/ holds at most this many recordings (4 per tab of the default 8)...
+RECENT_MAX_BYTES = 64 << 20  # ... and this many bytes (a typical play is 20-100 KB, a 10-minute one a few MB)
 MAX_LOGGED_STEPS = 100_000  # the in-memory copy for downloads mid-play (episodes end at their time limit anyway)
 MAX_LOGGED_FRAME_BYTES = 32 << 20  # its frames (flat drawings: 3-6 KB each, so about 10 minutes at 10 Hz)
 FINISH_TIMEOUT_S = 60.0
@@ -169,10 +175,12 @@ class LiveRecording:
 class PlayRecorder(PlayListener):
     """Records every play of every session; see the module docstring. `enabled=False` records nothing."""
 
-    def __init__(self, directory: str | os.PathLike, *, enabled: bool = True):
+    def __init__(self, directory: str | os.PathLike, *, enabled: bool = True, max_files: int = RECENT_MAX_FILES,
+                 max_bytes: int = RECENT_MAX_BYTES):
         self.directory = Path(directory)
         self.recent = self.directory / RECENT_DIR
         self.enabled = enabled
+        self.max_files, self.max_bytes = max_files, max_bytes
         self._lock = threading.Lock()
         # Keyed by the session itself, weakly: an entry goes with its session, and a closed tab's last play stays
         # reachable for as long as someone holds the session (e.g. the gallery's record_play thread after a solve).
@@ -186,24 +194,38 @@ class PlayRecorder(PlayListener):
     # ------------------------------------------------------------------ start-up and retention
 
     def clean_up(self) -> list[Path]:
-        """Remove partial files of a killed server (older than an hour, so another live server's are kept) and
-        recent/ files older than RECENT_KEEP_S. Returns what was removed."""
+        """Remove partial files that no live process owns (a killed server's; another live server's are kept) and
+        sweep recent/ (see _sweep_recent). Returns what was removed."""
         removed = remove_partial_files(self.directory) + remove_partial_files(self.recent)
         return removed + self._sweep_recent()
 
     def _sweep_recent(self) -> list[Path]:
-        removed = []
+        """Remove, oldest first, the recent/ files no open tab holds that are older than RECENT_KEEP_S or that put
+        recent/ over max_files or max_bytes; and partial files no process owns."""
+        removed = remove_partial_files(self.recent)
         with self._lock:
             keep = {r.path for r in self._live.values()}
             keep |= {r.done.result().path for r in self._last.values() if r.done.done()}
-        now = time.time()
+        files = []
         for path in self.recent.glob("*.mcap"):
             try:
-                if path not in keep and now - path.stat().st_mtime > RECENT_KEEP_S:
-                    path.unlink()
-                    removed.append(path)
+                stat = path.stat()
+            except FileNotFoundError:
+                continue
+            files.append((stat.st_mtime, path.name, path, stat.st_size))
+        files.sort()  # oldest first (by name for equal times)
+        count, total = len(files), sum(size for *_, size in files)
+        now = time.time()
+        for mtime, _, path, size in files:
+            over = count > self.max_files or total > self.max_bytes
+            if path in keep or not (over or now - mtime > RECENT_KEEP_S):
+                continue
+            try:
+                path.unlink()
+                removed.append(path)
             except FileNotFoundError:
                 pass
+            count, total = count - 1, total - size
         return removed
 
     # ------------------------------------------------------------------ PlayListener

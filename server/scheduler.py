@@ -9,6 +9,12 @@ whose ticks fall together step in one compiled batched call (play.Stepper.step_m
 Schedules sit on a shared grid of the play tick (dt x frame skip, 1/30 s by default) so that sessions started
 at different moments still come due together. A key press wakes the thread at once and steps that session
 straight away, as before (see Session._plan).
+
+Isolation: one session's failure never stops another. Everything done for one session (its plan, its step, its
+frame) runs under its own try; an exception ends that session's play with a visible message (Session.play_failed)
+and the others go on in the same tick. A batched step that raises is retried one play at a time, so only the
+play that fails is ended and the innocent ones keep their frame rate. A failed play ends, so its error is logged
+once; the same error again (same place, type and message) is logged without its traceback, at most once a minute.
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 IDLE_WAIT_S = 0.5  # how long the thread sleeps when no session has a tick coming (a wake cuts it short)
+MAX_LOGGED_ERRORS = 1000  # distinct errors remembered by _log_once
+LOG_REPEAT_S = 60.0  # an error seen again is logged (as one line with a count) at most this often
 
 
 class PlayScheduler:
@@ -33,6 +41,7 @@ class PlayScheduler:
         self._wake = threading.Event()
         self._stopping = False
         self._thread: threading.Thread | None = None
+        self._logged: dict[tuple, tuple[float, int]] = {}  # error -> (last logged, repeats since) (see _log_once)
 
     def add(self, session: Session) -> None:
         """Schedule this session (it has started playing); wakes the thread."""
@@ -71,8 +80,8 @@ class PlayScheduler:
             self._wake.clear()
             try:
                 next_due = self._tick(sessions)
-            except Exception:  # a bug here must not stop every tab's play; it is logged and the loop goes on
-                log.exception("play scheduler tick failed")
+            except Exception as error:  # a bug outside any one session: logged (once) and the loop goes on
+                self._log_once("play scheduler tick failed", error)
                 next_due = None
             wait = IDLE_WAIT_S if next_due is None else max(0.0, next_due - time.perf_counter())
             if wait > 0:
@@ -85,10 +94,13 @@ class PlayScheduler:
         frames: list[Session] = []
         next_due: float | None = None
         for session in sessions:
-            plan = session._plan(now)
+            try:
+                plan = session._plan(now)
+            except Exception as error:
+                self._fail(session, None, "planning its step", error)
+                continue
             if plan.kind == "drop":
-                with self._lock:
-                    self._sessions.discard(session)
+                self._drop(session)
             elif plan.kind == "step":
                 steps.setdefault(plan.stepper, []).append((session, plan))
             elif plan.kind == "frame":
@@ -96,10 +108,72 @@ class PlayScheduler:
             if plan.next_tick is not None:
                 next_due = plan.next_tick if next_due is None else min(next_due, plan.next_tick)
         for stepper, items in steps.items():
+            for session, plan, stepped in self._step_group(stepper, items):
+                try:
+                    session._finish_step(plan, *stepped)
+                except Exception as error:
+                    self._fail(session, plan, "drawing its step", error)
+        for session in frames:
+            try:
+                session._push_ack_frame()
+            except Exception as error:
+                self._fail(session, None, "drawing its frame", error)
+        return next_due
+
+    def _step_group(self, stepper, items: list) -> list:
+        """[(session, plan, (state, result))] for the plays of one stepper that stepped; the failed ones are ended.
+
+        One batched call first; if it raises, each play steps alone, so one bad play cannot take the others down.
+        """
+        try:
             results = stepper.step_many([p.state for _, p in items], [p.action for _, p in items],
                                         [p.params for _, p in items])
-            for (session, plan), (state, result) in zip(items, results, strict=True):
-                session._finish_step(plan, state, result)
-        for session in frames:
-            session._push_ack_frame()
-        return next_due
+            return [(session, plan, result) for (session, plan), result in zip(items, results, strict=True)]
+        except Exception as error:
+            if len(items) == 1:
+                self._fail(items[0][0], items[0][1], "stepping", error)
+                return []
+        stepped = []
+        for session, plan in items:
+            try:
+                stepped.append((session, plan, stepper.step(plan.state, plan.action, plan.params)))
+            except Exception as error:
+                self._fail(session, plan, "stepping", error)
+        return stepped
+
+    def _drop(self, session: Session) -> None:
+        with self._lock:
+            self._sessions.discard(session)
+
+    def _fail(self, session: Session, plan, doing: str, error: Exception) -> None:
+        """End this session's play with a visible error (it then drops out of the schedule by itself)."""
+        self._log_once(f"a play failed while {doing}", error)
+        try:
+            session.play_failed(error, None if plan is None else plan.play_id)
+        except Exception as second:  # the session cannot even show the error: stop looking at it
+            self._drop(session)
+            self._log_once("could not end a failed play", second)
+
+    def _log_once(self, what: str, error: Exception) -> None:
+        """The traceback the first time an error is seen; after that a one-line count at most every LOG_REPEAT_S.
+
+        A play that fails is ended, so its error comes once; this also keeps an error that recurs every tick
+        (a bug outside any session, or many plays of one bad level) from flooding the log.
+        """
+        frame = error.__traceback__
+        while frame is not None and frame.tb_next is not None:
+            frame = frame.tb_next
+        where = (frame.tb_frame.f_code.co_filename, frame.tb_lineno) if frame is not None else None
+        key = (what, type(error).__name__, str(error)[:200], where)
+        now = time.monotonic()
+        with self._lock:
+            first = key not in self._logged
+            if first and len(self._logged) >= MAX_LOGGED_ERRORS:
+                self._logged.clear()  # a bound on memory; at worst an old error's traceback is logged again
+            last, count = self._logged.get(key, (now - LOG_REPEAT_S, 0))
+            due = first or now - last >= LOG_REPEAT_S
+            self._logged[key] = (now, 0) if due else (last, count + 1)
+        if first:
+            log.error("%s", what, exc_info=error)
+        elif due:
+            log.warning("%s again (%d more times since): %s: %s", what, count + 1, type(error).__name__, error)

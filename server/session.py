@@ -32,6 +32,7 @@ from server.scheduler import PlayScheduler
 log = logging.getLogger(__name__)
 
 BATCH_SLACK_S = 0.002  # sessions due within this much of each other step in one batch
+MAX_ERROR_TEXT = 160  # characters of an exception shown in the tab when its play fails
 MAX_PIXELS = 1280 * 800  # larger canvases are rendered smaller at the same aspect ratio (the browser scales up)
 JPEG_QUALITY = 85
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke.",
@@ -410,14 +411,16 @@ class Session:
                 self.stop()
             try:
                 level_file = self.editor.level_file()
+                stepper = stepper_for(level_file)
+                state, params = stepper.start(level_file)
             except Exception as error:  # e.g. the level does not build; say why instead of playing
+                if not isinstance(error, ValueError):  # a LevelError is the user's to fix; anything else is ours
+                    log.exception("could not start a play")
                 self._message = f"cannot play: {error}"
                 self.refresh(force=True)
                 return
             from kinetix.bindings import clockwise_values
 
-            stepper = stepper_for(level_file)
-            state, params = stepper.start(level_file)
             self._play = (stepper, state, params)
             self.clockwise = clockwise_values(level_file.level)
             self._steps, self._result, self._message = 0, None, None
@@ -569,6 +572,23 @@ class Session:
                                      args=(self, self._result, result.timestep, seconds), daemon=True).start()
             self._push_frame(ack=plan.ack, background=True)
 
+    def play_failed(self, error: BaseException, play_id: int | None = None) -> None:
+        """The play scheduler could not step or draw this play: end it and say why in the tab (the status line of
+        the edit view and a notification). Other tabs are not affected. `play_id`: the play that failed (a newer
+        play started meanwhile is left alone); None for the current one."""
+        with self.lock:
+            if self.closed or self.mode in ("edit", "replay") or (play_id is not None and play_id != self._play_id):
+                return
+            detail = f"{type(error).__name__}: {error}"
+            detail = detail if len(detail) <= MAX_ERROR_TEXT else detail[:MAX_ERROR_TEXT - 3] + "..."
+            self._message = f"Play stopped: the simulation failed ({detail}). See the server log."
+            self.stop()  # back to editing: the message shows in the edit view's status line
+            client = self.client
+        try:
+            client.add_notification("Play stopped", self._message, color="red", with_close_button=True)
+        except Exception:  # a tab that went away, or a test double without notifications
+            log.debug("could not notify the tab of its failed play", exc_info=True)
+
     def _push_ack_frame(self) -> None:
         with self.lock:
             if not self.closed and self.mode != "edit":
@@ -644,6 +664,8 @@ class Session:
         try:
             frame = self.render()
         except Exception:
+            if background:  # on the play thread: the scheduler ends this play with the error, logged once there
+                raise
             log.exception("render failed")
             return
         pending = self._pending_push

@@ -10,12 +10,15 @@ run early (the checkpoint is still written, marked "stopped": true). The output 
     checkpoint/    the agent (kinetix.agents.checkpoint), loadable with `--agent OUT/checkpoint`
     metrics.json   {"config", "level", "curriculum", "metrics": [one dict per update], "stopped", ...}
     curve.png      mean return and solve rate against env steps
+    resume/        the whole training state, for `kinetix train --resume OUT` (kinetix.agents.resume; written by
+                   `kinetix train`, and by train_agent with save_state, resume or a checkpoint cadence)
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import shlex
@@ -27,6 +30,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import jax2d
 from kinetix.agents import checkpoint as checkpoint_module
@@ -89,9 +93,26 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                 observation: str = "entity", action: str = "multi_discrete", dense_reward: float | None = None,
                 curriculum_config: curricula.CurriculumConfig | None = None, shard: bool = True,
                 progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
-                command: str | None = None) -> dict:
-    """Train, then write OUT/checkpoint, OUT/metrics.json and OUT/curve.png. Returns the metrics.json content."""
+                command: str | None = None, resume: bool = False, checkpoint_every: float | None = None,
+                checkpoint_every_updates: int | None = None, save_state: bool = False) -> dict:
+    """Train, then write OUT/checkpoint, OUT/metrics.json, OUT/curve.png and OUT/resume/. Returns the metrics.json
+    content.
+
+    save_state: also write the whole training state to OUT/resume (kinetix.agents.resume) at the end, stopped
+    early or not, so the run can be resumed (`kinetix train` always does; off by default for library callers
+    such as the server, whose specialists need only the checkpoint). resume: continue the run whose training
+    state is in OUT/resume instead of starting afresh; every setting must equal the saved run's (CheckpointError
+    naming the differences otherwise). checkpoint_every (minutes of wall-clock time) / checkpoint_every_updates:
+    also write everything between chunks at that cadence, so a killed job loses at most that much work. Either
+    of these implies save_state. In a multi-process run only process 0 writes."""
+    from kinetix.agents import multihost
+    from kinetix.agents import resume as resume_module
+
+    for name, value in (("checkpoint_every", checkpoint_every), ("checkpoint_every_updates", checkpoint_every_updates)):
+        if value is not None and not value > 0:
+            raise ValueError(f"{name.replace('_', '-')} must be positive, got {value}")
     out = Path(out)
+    save_state = save_state or resume or checkpoint_every is not None or checkpoint_every_updates is not None
     config = config or TrainConfig()
     config = dataclasses.replace(config, total_timesteps=steps)
     curriculum_config = curriculum_config or curricula.CurriculumConfig()
@@ -108,7 +129,13 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                                                              curriculum_config, dense_reward)
     if init_params is not None and ckpt.env["observation"] != "entity" and ckpt.env["size"] != env.config.size.name:
         raise CheckpointError(f"--init {init} fits size {ckpt.env['size']} only, the levels are {env.config.size.name}")
+    run_id = run_identity(level, config, curriculum_name, curriculum_config, seed, init, env, env_params, factory)
+    saved = resume_module.load_latest(out) if resume else None
+    if saved is not None:
+        resume_module.compare_runs(saved[0]["run"], run_id)
 
+    if not shard and jax.process_count() > 1:
+        raise ValueError("--no-shard cannot be used with several processes: each would train the whole batch alone")
     sharder = None
     if shard and jax.device_count() > 1:
         from kinetix.agents.sharding import batch_sharder, local_mesh
@@ -134,15 +161,65 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     network_holder["network"] = trainer.network
     runner = jax2d.jit(trainer.init)(jax.random.key(seed))
     history: list[dict] = []
+    elapsed_before = 0.0
+    if saved is not None:
+        meta, arrays, _ = saved
+        runner = resume_module.restore(runner, arrays)
+        history, elapsed_before = list(meta["history"]), float(meta["elapsed"])
+        if len(history) % config.updates_per_call or len(history) > config.num_chunks * config.updates_per_call:
+            raise CheckpointError(f"the training state in {out} holds {len(history)} updates, not a whole number of "
+                                  f"this run's chunks")
     start = time.perf_counter()
+    arguments = {"level": level if level in RANDOM_LEVELS else str(Path(level).resolve()), "steps": steps,
+                 "curriculum": curriculum, "init": init, "seed": seed, "observation": observation, "action": action,
+                 "dense_reward": dense_reward, "config": dataclasses.asdict(config),
+                 "curriculum_config": dataclasses.asdict(curriculum_config)}
+
+    def write(stopped: bool, final: bool) -> dict:
+        """Everything a finished run leaves (the curve only at the end); a collective in multi-process runs."""
+        host = resume_module.host_tree(runner if save_state else runner.train_state.params)
+        elapsed = elapsed_before + time.perf_counter() - start
+        info = {"level": level, "curriculum": curriculum_name, "steps": history[-1]["env_steps"] if history else 0,
+                "seed": seed, "init": init, "command": command, "stopped": stopped}
+        summary = {"config": dataclasses.asdict(config), **info,
+                   "curriculum_config": (dataclasses.asdict(curriculum_config) if curriculum_name in ("sfl", "plr")
+                                         else None),
+                   "size": env.config.size.name, "devices": jax.device_count(), "processes": jax.process_count(),
+                   "resumed_at_update": None if saved is None else len(saved[0]["history"]),
+                   "complete": len(history) == config.num_chunks * config.updates_per_call,  # False mid-run
+                   "elapsed_seconds": elapsed, "metrics": history}
+        if not multihost.is_main():
+            return summary
+        if save_state:
+            meta = {"run": run_id, "arguments": arguments, "history": history, "elapsed": elapsed}
+            resume_module.save(out, len(history), meta, resume_module.flatten(host))
+        params = host.train_state.params if save_state else host
+        checkpoint_module.save(out / "checkpoint", params, config, env.config, info)
+        tmp = out / "metrics.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=1) + "\n")
+        os.replace(tmp, out / "metrics.json")
+        if final:
+            from kinetix.agents.plot import learning_curve
+
+            learning_curve(out / "curve.png", {Path(level).stem if level not in RANDOM_LEVELS else level: history})
+        return summary
+
     stopped = False
-    for _ in range(config.num_chunks):
-        if should_stop is not None and should_stop():
+    last_save_time, last_save_update = time.perf_counter(), len(history)
+    for _ in range(len(history) // config.updates_per_call, config.num_chunks):
+        stop = should_stop is not None and should_stop()
+        due = checkpoint_due(time.perf_counter() - last_save_time, len(history) - last_save_update,
+                             checkpoint_every, checkpoint_every_updates)
+        stop, due = multihost.agree(stop, due)  # process 0 decides, so every process takes the same path
+        if stop:
             stopped = True
             break
+        if due:
+            write(stopped=False, final=False)
+            last_save_time, last_save_update = time.perf_counter(), len(history)
         runner, metrics = trainer.run(runner)
         metrics = jax.device_get(metrics)
-        elapsed = time.perf_counter() - start
+        elapsed = elapsed_before + time.perf_counter() - start
         for i in range(config.updates_per_call):
             m = {k: float(v[i]) for k, v in metrics.items()}
             m["total_steps"] = config.planned_steps
@@ -151,22 +228,31 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
             history.append(m)
             if progress is not None:
                 progress(m)
-    train_state = runner.train_state
-    info = {"level": level, "curriculum": curriculum_name, "steps": history[-1]["env_steps"] if history else 0,
-            "seed": seed, "init": init, "command": command, "stopped": stopped}
-    checkpoint_module.save(out / "checkpoint", train_state.params, config, env.config, info)
-    summary = {"config": dataclasses.asdict(config), **info,
-               "curriculum_config": (dataclasses.asdict(curriculum_config) if curriculum_name in ("sfl", "plr")
-                                     else None),
-               "size": env.config.size.name, "devices": jax.local_device_count(),
-               "elapsed_seconds": time.perf_counter() - start, "metrics": history}
-    tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=1) + "\n")
-    os.replace(tmp, out / "metrics.json")
-    from kinetix.agents.plot import learning_curve
+    return write(stopped=stopped, final=True)
 
-    learning_curve(out / "curve.png", {Path(level).stem if level not in RANDOM_LEVELS else level: history})
-    return summary
+
+def checkpoint_due(seconds_since: float, updates_since: int, every_minutes: float | None,
+                   every_updates: int | None) -> bool:
+    """Whether the periodic checkpoint is due, `seconds_since` / `updates_since` the last one (or the job's start)."""
+    return bool((every_minutes is not None and seconds_since >= 60 * every_minutes)
+                or (every_updates is not None and updates_since >= every_updates))
+
+
+def run_identity(level: str, config: TrainConfig, curriculum_name: str, curriculum_config: curricula.CurriculumConfig,
+                 seed: int, init: str | None, env, env_params: EnvParams, factory) -> dict:
+    """What defines a run's numbers: a resumed run must match the saved one in all of it. Level files count by
+    content (a digest of the stacked levels and the env params), not by path, so a run can resume from another
+    working directory but not on edited levels."""
+    digest = hashlib.sha256()
+    for leaf in jax.tree.leaves(env_params):
+        digest.update(np.asarray(leaf).tobytes())
+    if curriculum_name == "fixed":
+        for leaf in jax.tree.leaves(factory(None).init(None)):  # the stacked levels
+            digest.update(np.asarray(leaf).tobytes())
+    return {"train": dataclasses.asdict(config), "curriculum": curriculum_name, "seed": seed, "init": init,
+            "curriculum_config": dataclasses.asdict(curriculum_config) if curriculum_name in ("sfl", "plr") else None,
+            "env": checkpoint_module.env_description(env.config),
+            "levels": (level if level in RANDOM_LEVELS else "files") + " sha256:" + digest.hexdigest()[:16]}
 
 
 class StopRule:
@@ -200,23 +286,60 @@ class StopRule:
         return self.reason is not None
 
 
+CONFIG_OPTIONS = ("num_envs", "num_steps", "updates_per_call", "lr", "network", "width", "hidden", "update_epochs",
+                  "num_minibatches")  # `kinetix train` options that are TrainConfig fields of the same name
+
+
+def settings_from_args(args: argparse.Namespace) -> dict:
+    """train_agent's arguments from the command line. With --resume, a setting not given is the saved run's (the
+    newest intact state's "arguments"); one given is kept, and train_agent refuses it if it differs."""
+    from kinetix.agents import resume as resume_module
+
+    stored: dict = {}
+    if args.resume:
+        if args.out and Path(args.out).resolve() != Path(args.resume).resolve():
+            raise ValueError(f"--out {args.out} differs from --resume {args.resume}: a resumed run writes where it was")
+        stored = resume_module.load_latest(args.resume)[0]["arguments"]
+    saved_config = {k: v for k, v in stored.get("config", {}).items() if k != "total_timesteps"}
+    given_config = {k: getattr(args, k) for k in CONFIG_OPTIONS if getattr(args, k) is not None}
+    config = TrainConfig(**{**saved_config, **given_config})
+
+    def pick(name: str, default=None):
+        value = getattr(args, name, None)
+        return value if value is not None else stored.get(name, default)
+
+    level = pick("level")
+    if level is None:
+        raise ValueError("--level is required (or --resume DIR to continue a run)")
+    settings = {"level": level, "steps": pick("steps", 1_000_000), "curriculum": pick("curriculum"),
+                "init": pick("init"), "seed": pick("seed", 0), "config": config,
+                "observation": pick("observation", config.network), "action": stored.get("action", "multi_discrete"),
+                "dense_reward": pick("dense_reward"), "resume": bool(args.resume)}
+    if "curriculum_config" in stored:
+        settings["curriculum_config"] = curricula.CurriculumConfig(**stored["curriculum_config"])
+    return settings
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    config = TrainConfig(num_envs=args.num_envs, num_steps=args.num_steps, network=args.network, lr=args.lr,
-                         updates_per_call=args.updates_per_call)
-    observation = args.observation or args.network
-    out = Path(args.out) if args.out else Path("runs") / f"{Path(args.level).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
-    # smoothing=0: the rate and ETA average over the whole run (updates arrive in chunks, compile time included)
-    total = dataclasses.replace(config, total_timesteps=args.steps).planned_steps
-    bar = tqdm(total=total, unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0, file=sys.stderr)
+    from kinetix.agents import multihost
 
-    try:
+    try:  # before anything starts JAX's backend
+        multihost.initialize(args.coordinator, args.num_processes, args.process_id)
+        settings = settings_from_args(args)
         rule = StopRule(args.minutes, args.target_solve_rate)
-    except ValueError as error:
-        bar.close()
+    except (CheckpointError, ValueError, RuntimeError) as error:
         print(f"kinetix train: {error}", file=sys.stderr)
         return 2
+    main = multihost.is_main()
+    level, config = settings["level"], settings["config"]
+    out = (Path(args.resume) if args.resume else Path(args.out) if args.out
+           else Path("runs") / f"{Path(level).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    # smoothing=0: the rate and ETA average over the whole run (updates arrive in chunks, compile time included)
+    total = dataclasses.replace(config, total_timesteps=settings["steps"]).planned_steps
+    bar = tqdm(total=total, unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0, file=sys.stderr,
+               disable=not main)
 
     def progress(m: dict) -> None:
         rule.observe(m)
@@ -236,22 +359,25 @@ def run(args: argparse.Namespace) -> int:
 
     previous = {sig: signal.signal(sig, stop_gracefully) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        summary = train_agent(args.level, out, steps=args.steps, curriculum=args.curriculum, init=args.init,
-                              seed=args.seed, config=config, observation=observation,
-                              dense_reward=args.dense_reward, shard=not args.no_shard, progress=progress,
-                              should_stop=lambda: bool(interrupted) or rule(), command=command)
+        summary = train_agent(out=out, shard=not args.no_shard, progress=progress,
+                              should_stop=lambda: bool(interrupted) or rule(), command=command,
+                              checkpoint_every=args.checkpoint_every,
+                              checkpoint_every_updates=args.checkpoint_every_updates, save_state=True,
+                              **settings)
     except (LevelError, CheckpointError, ValueError) as error:
         bar.close()
         print(f"kinetix train: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         bar.close()
-        print("kinetix train: interrupted; nothing written", file=sys.stderr)
+        print("kinetix train: interrupted; nothing more written (periodic checkpoints are kept)", file=sys.stderr)
         return 130
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     bar.close()
+    if not main:
+        return 0
     if rule.reason and not interrupted:
         print(f"kinetix train: stopped early: {rule.reason}", file=sys.stderr)
     last = summary["metrics"][-1] if summary["metrics"] else {}

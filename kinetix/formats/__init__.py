@@ -20,9 +20,11 @@ import numpy as np
 
 from jax2d.geometry import GeometryError, circle_mass_properties, polygon_mass_properties, validate_polygon
 from jax2d.state import COLLIDE_ALL, COLLIDE_NORMAL, COLLIDE_ONLY_ALL, Capacity, SimState, empty_state
+from kinetix import ranges
 from kinetix.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
+    PHYSICS_PARAMS,
     ROLE_NAMES,
     Level,
     LevelError,
@@ -31,9 +33,6 @@ from kinetix.level import (
     SizeClass,
     size_for_counts,
 )
-
-# Every number in a level must lie within +-this: far beyond any sensible scene, well inside float32.
-MAX_MAGNITUDE = 1e6
 
 # A polygon whose vertex centroid is further than this (relative to its size) from the body
 # position is recentred on load. Below it the offset is float32 round-off of an already centred
@@ -96,6 +95,9 @@ class LevelSpec:
     size: SizeClass | None = None  # the size the file asks for; None: the smallest that fits
     name: str = ""
     warnings: list[str] = dataclasses.field(default_factory=list)
+    # Where the file keeps a field, for error messages, keyed as kinetix.ranges.RANGES (e.g. "body.angle" ->
+    # "rotation", "env.max_timesteps" -> "env_params.max_timesteps"); fields not listed use our format's names.
+    field_names: dict[str, str | tuple[str, ...]] = dataclasses.field(default_factory=dict)
 
 
 # ---------------------------------------------------------------- reading JSON with field paths
@@ -151,9 +153,9 @@ class Fields:
         return self.data[key]
 
     def number(self, key: str, default=MISSING, low: float | None = None, high: float | None = None,
-               positive: bool = False, limit: float | None = MAX_MAGNITUDE) -> float:
+               positive: bool = False) -> float:
         value = self.get(key, default)
-        return check_number(value, self.where(key), low, high, positive, limit)
+        return check_number(value, self.where(key), low, high, positive)
 
     def integer(self, key: str, default=MISSING, low: int | None = None, high: int | None = None) -> int:
         value = self.get(key, default)
@@ -196,14 +198,13 @@ class Fields:
 
 
 def check_number(value, where: str, low: float | None = None, high: float | None = None,
-                 positive: bool = False, limit: float | None = MAX_MAGNITUDE) -> float:
+                 positive: bool = False) -> float:
+    """A finite number (optional bounds for values that are not level fields; those are in kinetix.ranges)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise LevelError(f"{where}: expected a number, got {value!r}")
     x = float(value)
     if not math.isfinite(x):
         raise LevelError(f"{where}: must be finite, got {x}")
-    if limit is not None and abs(x) > limit:
-        raise LevelError(f"{where}: {x:g} is beyond the supported range +-{limit:g}")
     if positive and x <= 0:
         raise LevelError(f"{where}: must be > 0, got {x}")
     if (low is not None and x < low) or (high is not None and x > high):
@@ -302,9 +303,6 @@ def _check_body(body: BodySpec) -> None:
         raise LevelError(f"{body.path}.collision_mode: expected 0, 1 or 2, got {body.collision_mode}")
     if body.role not in range(len(ROLE_NAMES)):
         raise LevelError(f"{body.path}.role: expected 0..{len(ROLE_NAMES) - 1}, got {body.role}")
-    check_number(body.density, f"{body.path}.density", positive=True)
-    check_number(body.friction, f"{body.path}.friction", low=0.0)
-    check_number(body.restitution, f"{body.path}.restitution", low=0.0, high=1.0)
     if body.fixed and (body.velocity != (0.0, 0.0) or body.angular_velocity != 0.0):
         raise LevelError(f"{body.path}: a fixed body never moves, so it cannot have a velocity")
 
@@ -315,6 +313,7 @@ def build(spec: LevelSpec, size: SizeClass | None = None) -> LevelFile:
     if errors := fit_errors(spec, size):
         raise LevelError("level does not fit: " + "; ".join(errors))
     check_references(spec)
+    check_ranges(spec)
     sim = _empty_state(size.capacity)
     P, V = size.polygons, size.max_vertices
     b, j, t = _numpy_arrays(sim.bodies), _numpy_arrays(sim.joints), _numpy_arrays(sim.thrusters)
@@ -340,7 +339,7 @@ def build(spec: LevelSpec, size: SizeClass | None = None) -> LevelFile:
             b["n_vertices"][i] = len(body.vertices)
             position = position + _rotation(angle) @ shift
         else:
-            radius = check_number(body.radius, f"{body.path}.radius", positive=True)
+            radius = body.radius
             b["radius"][i - P] = radius
             mass, inertia, _ = circle_mass_properties(float(np.float32(radius)), float(np.float32(body.density)))
             shift = np.zeros(2)
@@ -499,3 +498,42 @@ def check_references(spec: LevelSpec) -> None:
         if not 0 <= thruster.binding < NUM_THRUSTER_BINDINGS:
             raise LevelError(f"{thruster.path}: thruster binding {thruster.binding} is not in "
                              f"[0, {NUM_THRUSTER_BINDINGS})")
+
+
+def check_ranges(spec: LevelSpec) -> None:
+    """Every numeric field of the spec within its range of kinetix.ranges.RANGES; LevelError names the field."""
+
+    def check(key: str, value, path: str, ours: str) -> None:
+        name = spec.field_names.get(key, ours)
+        if isinstance(name, tuple):  # one file field per component (Kinetix joint limits)
+            for part, x in zip(name, value, strict=True):
+                ranges.check(key, x, f"{path}.{part}" if path else part)
+        else:
+            ranges.check(key, value, f"{path}.{name}" if path else name)
+
+    p = spec.params
+    for name in ("max_timesteps", "frame_skip", "dense_reward_scale"):
+        check(f"env.{name}", getattr(p, name), "", f"env.{name}")
+    for name in PHYSICS_PARAMS:
+        check(f"env.physics.{name}", getattr(p, name), "", f"env.physics.{name}")
+    check("gravity", spec.gravity, "", "gravity")
+    for body in spec.bodies:
+        for field in ("position", "angle", "density", "friction", "restitution", "velocity", "angular_velocity"):
+            check(f"body.{field}", getattr(body, field), body.path, field)
+        if body.shape == "polygon":
+            check("body.vertices", body.vertices, body.path, "vertices")
+        else:
+            check("body.radius", body.radius, body.path, "radius")
+    for joint in spec.joints:
+        check("joint.anchor_a", joint.anchor_a, joint.path, "anchor_a")
+        check("joint.anchor_b", joint.anchor_b, joint.path, "anchor_b")
+        if joint.ref_angle is not None:
+            check("joint.ref_angle", joint.ref_angle, joint.path, "ref_angle")
+        if not joint.fixed:
+            check("joint.motor.speed", joint.motor_speed, joint.path, "motor.speed")
+            check("joint.motor.power", joint.motor_power, joint.path, "motor.power")
+            if joint.limits is not None:
+                check("joint.limits", joint.limits, joint.path, "limits")
+    for thruster in spec.thrusters:
+        for field in ("anchor", "angle", "power"):
+            check(f"thruster.{field}", getattr(thruster, field), thruster.path, field)

@@ -54,6 +54,28 @@ _THEIR_SOLVER_PARAMS = dict(
 )
 _THEIR_MOTOR_PARAMS = dict(motor_decay_coefficient=0.1, motor_joint_limit=0.1, base_friction=0.4)
 
+# Their names for the fields that kinetix.ranges bounds, so a range error names the field as it is in the file
+# (vertex indices in such errors count in our counter-clockwise order).
+_FIELD_NAMES: dict[str, str | tuple[str, ...]] = {
+    "env.max_timesteps": "env_params.max_timesteps",
+    "env.frame_skip": "static_env_params.frame_skip",
+    "env.dense_reward_scale": "env_params.dense_reward_scale",
+    "env.physics.dt": "env_params.dt",
+    "env.physics.base_motor_speed": "env_params.base_motor_speed",
+    "env.physics.base_motor_power": "env_params.base_motor_power",
+    "env.physics.base_thruster_power": "env_params.base_thruster_power",
+    "gravity": "env_state.gravity",
+    "body.angle": "rotation",
+    "joint.anchor_a": "a_relative_pos",
+    "joint.anchor_b": "b_relative_pos",
+    "joint.ref_angle": "rotation",
+    "joint.motor.speed": "motor_speed",
+    "joint.motor.power": "motor_power",
+    "joint.limits": ("min_rotation", "max_rotation"),
+    "thruster.anchor": "relative_position",
+    "thruster.angle": "rotation",
+}
+
 
 # ---------------------------------------------------------------- import
 
@@ -94,7 +116,7 @@ def read(data) -> LevelSpec:
             fields.require("a_index", "b_index", "a_relative_pos", "b_relative_pos")
             a, b = body_ref(fields, "a_index"), body_ref(fields, "b_index")
             if a is not None and b is not None:
-                joint_specs.append(_read_joint(fields, a, b, f"joints[{len(joint_specs)}]"))
+                joint_specs.append(_read_joint(fields, a, b, fields.path))
     thruster_specs = []
     for k, item in enumerate(thrusters):
         fields = Fields(item, f"env_state.thruster[{k}]", lists_may_be_dicts=True)
@@ -107,7 +129,7 @@ def read(data) -> LevelSpec:
                     body=body,
                     anchor=fields.vector("relative_position"),
                     angle=fields.number("rotation", 0.0),
-                    power=fields.number("power", 1.0, low=0.0),
+                    power=fields.number("power", 1.0),
                     binding=fields.integer("thruster_binding", 0, low=0, high=NUM_THRUSTER_BINDINGS - 1),
                 ))
 
@@ -115,13 +137,13 @@ def read(data) -> LevelSpec:
     static = top.child("static_env_params", {})
     defaults = LevelParams()
     params = LevelParams(
-        max_timesteps=env.integer("max_timesteps", defaults.max_timesteps, low=1),
-        frame_skip=static.integer("frame_skip", defaults.frame_skip, low=1),
+        max_timesteps=env.integer("max_timesteps", defaults.max_timesteps),
+        frame_skip=static.integer("frame_skip", defaults.frame_skip),
         dense_reward_scale=env.number("dense_reward_scale", defaults.dense_reward_scale),
-        dt=env.number("dt", defaults.dt, positive=True),
-        base_motor_speed=env.number("base_motor_speed", defaults.base_motor_speed, low=0.0),
-        base_motor_power=env.number("base_motor_power", defaults.base_motor_power, low=0.0),
-        base_thruster_power=env.number("base_thruster_power", defaults.base_thruster_power, low=0.0),
+        dt=env.number("dt", defaults.dt),
+        base_motor_speed=env.number("base_motor_speed", defaults.base_motor_speed),
+        base_motor_power=env.number("base_motor_power", defaults.base_motor_power),
+        base_thruster_power=env.number("base_thruster_power", defaults.base_thruster_power),
     )
     counts = dict(polygons=len(polygons), circles=len(circles), joints=len(joints), thrusters=len(thrusters))
     declared = {kind: static.data.get(f"num_{kind}") for kind in counts}
@@ -136,6 +158,7 @@ def read(data) -> LevelSpec:
         params=params,
         size=_size_for(counts),
         warnings=warnings,
+        field_names=dict(_FIELD_NAMES),
     )
 
 
@@ -148,7 +171,7 @@ def _size_for(counts: dict[str, int]) -> SizeClass:
 
 def _read_body(fields: Fields, shape: str, warnings: list[str]) -> BodySpec:
     fields.require("position", "inverse_mass", *(("n_vertices", "vertices") if shape == "polygon" else ("radius",)))
-    fixed = fields.number("inverse_mass", low=0.0, limit=None) == 0.0
+    fixed = fields.number("inverse_mass", low=0.0) == 0.0
     spec = BodySpec(
         path=fields.path,
         shape=shape,
@@ -156,9 +179,9 @@ def _read_body(fields: Fields, shape: str, warnings: list[str]) -> BodySpec:
         angle=fields.number("rotation", 0.0),
         fixed=fixed,
         role=fields.integer("role", 0, low=0, high=len(ROLE_NAMES) - 1),
-        density=fields.number("density", 1.0, positive=True),
-        friction=fields.number("friction", 1.0, low=0.0),
-        restitution=fields.number("restitution", 0.0, low=0.0, high=1.0),
+        density=fields.number("density", 1.0),
+        friction=fields.number("friction", 1.0),
+        restitution=fields.number("restitution", 0.0),
         collision_mode=fields.integer("collision_mode", 1, low=0, high=2),
         velocity=fields.vector("velocity", [0.0, 0.0]),
         angular_velocity=fields.number("angular_velocity", 0.0),
@@ -175,7 +198,7 @@ def _read_body(fields: Fields, shape: str, warnings: list[str]) -> BodySpec:
         points = [fields.list_value(v, f"{where}[{i}]") for i, v in enumerate(vertices[:n])]
         spec.vertices = [check_vector(p, f"{where}[{i}]") for i, p in enumerate(points)][::-1]  # clockwise -> ccw
     else:
-        spec.radius = fields.number("radius", positive=True)
+        spec.radius = fields.number("radius")
     return spec
 
 
@@ -193,7 +216,7 @@ def _read_joint(fields: Fields, a: int, b: int, path: str) -> JointSpec:
     if not fixed:  # a weld has no motor or limits; their values are left over from editing
         spec.motor_on = fields.boolean("motor_on", False)
         spec.motor_speed = fields.number("motor_speed", 1.0)
-        spec.motor_power = fields.number("motor_power", 1.0, low=0.0)
+        spec.motor_power = fields.number("motor_power", 1.0)
         spec.motor_binding = fields.integer("motor_binding", 0, low=0, high=NUM_MOTOR_BINDINGS - 1)
         if fields.boolean("motor_has_joint_limits", False):
             lo, hi = fields.number("min_rotation"), fields.number("max_rotation")

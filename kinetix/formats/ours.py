@@ -99,15 +99,15 @@ def _read_env(top: Fields) -> LevelParams:
     _reject_unknown(env, ENV_FIELDS)
     defaults = LevelParams()
     values = dict(
-        max_timesteps=env.integer("max_timesteps", defaults.max_timesteps, low=1),
-        frame_skip=env.integer("frame_skip", defaults.frame_skip, low=1),
+        max_timesteps=env.integer("max_timesteps", defaults.max_timesteps),
+        frame_skip=env.integer("frame_skip", defaults.frame_skip),
         dense_reward_scale=env.number("dense_reward_scale", defaults.dense_reward_scale),
     )
     physics = env.child("physics", {})
     _reject_unknown(physics, PHYSICS_PARAMS)
-    values["dt"] = physics.number("dt", defaults.dt, positive=True)
+    values["dt"] = physics.number("dt", defaults.dt)
     for name in PHYSICS_PARAMS[1:]:
-        values[name] = physics.number(name, getattr(defaults, name), low=0.0)
+        values[name] = physics.number(name, getattr(defaults, name))
     return LevelParams(**values)
 
 
@@ -128,9 +128,9 @@ def _read_body(fields: Fields) -> BodySpec:
         angle=fields.number("angle", 0.0),
         fixed=fields.boolean("fixed", False),
         role=ROLE_NAMES.index(role),
-        density=fields.number("density", 1.0, positive=True),
-        friction=fields.number("friction", 1.0, low=0.0),
-        restitution=fields.number("restitution", 0.0, low=0.0, high=1.0),
+        density=fields.number("density", 1.0),
+        friction=fields.number("friction", 1.0),
+        restitution=fields.number("restitution", 0.0),
         collision_mode=fields.integer("collision_mode", 1, low=0, high=2),
         velocity=fields.vector("velocity", [0.0, 0.0]),
         angular_velocity=fields.number("angular_velocity", 0.0),
@@ -139,7 +139,7 @@ def _read_body(fields: Fields) -> BodySpec:
         vertices = fields.list("vertices")
         spec.vertices = [check_vector(v, f"{fields.where('vertices')}[{k}]") for k, v in enumerate(vertices)]
     else:
-        spec.radius = fields.number("radius", positive=True)
+        spec.radius = fields.number("radius")
     return spec
 
 
@@ -180,7 +180,7 @@ def _read_joint(fields: Fields, bodies: list[BodySpec]) -> JointSpec:
             _reject_unknown(motor, MOTOR_FIELDS)
             spec.motor_on = motor.boolean("on", True)
             spec.motor_speed = motor.number("speed", 1.0)
-            spec.motor_power = motor.number("power", 1.0, low=0.0)
+            spec.motor_power = motor.number("power", 1.0)
             spec.motor_binding = motor.integer("binding", 0, low=0, high=NUM_MOTOR_BINDINGS - 1)
             spec.motor_auto = motor.boolean("auto", False)
         limits = fields.get("limits", None)
@@ -202,7 +202,7 @@ def _read_thruster(fields: Fields, num_bodies: int) -> ThrusterSpec:
         body=fields.integer("body", low=0, high=num_bodies - 1),
         anchor=fields.vector("anchor"),
         angle=fields.number("angle", 0.0),
-        power=fields.number("power", 1.0, low=0.0),
+        power=fields.number("power", 1.0),
         binding=fields.integer("binding", 0, low=0, high=NUM_THRUSTER_BINDINGS - 1),
     )
 

@@ -26,6 +26,11 @@ from typing import Any
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
+try:
+    import fcntl  # ownership of partial files (see remove_partial_files)
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None
+
 from kinetix.level import LevelFile
 from kinetix.recording import schema
 from kinetix.recording.errors import RecordingError
@@ -155,6 +160,9 @@ class Recorder:
             "extra": json.dumps(metadata),
         }
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=self.path.parent)
+        # Claim the file for this process (see remove_partial_files) through a second descriptor, so the claim
+        # lasts past the writer thread's close of the file until it is renamed into place or deleted.
+        self._claim = _claim(fd)
         self._tmp = Path(tmp)
         self._file = os.fdopen(fd, "wb")
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -200,13 +208,16 @@ class Recorder:
         _OPEN.discard(self)
         self._queue.put(_CLOSE)
         self._thread.join()
-        if self._error is not None:
-            self._tmp.unlink(missing_ok=True)
-            raise RecordingError(f"writing {self.path} failed: {self._error}") from self._error
-        from kinetix.levels import _umask
+        try:
+            if self._error is not None:
+                self._tmp.unlink(missing_ok=True)
+                raise RecordingError(f"writing {self.path} failed: {self._error}") from self._error
+            from kinetix.levels import _umask
 
-        os.chmod(self._tmp, 0o666 & ~_umask())  # mkstemp makes it 0600; a finished recording is an ordinary file
-        os.replace(self._tmp, self.path)
+            os.chmod(self._tmp, 0o666 & ~_umask())  # mkstemp makes it 0600; a finished recording is an ordinary file
+            os.replace(self._tmp, self.path)
+        finally:
+            _release(self._claim)
         return self.path
 
     def abort(self) -> None:
@@ -218,6 +229,7 @@ class Recorder:
         self._queue.put(_ABORT)
         self._thread.join()
         self._tmp.unlink(missing_ok=True)
+        _release(self._claim)
 
     def __enter__(self) -> Recorder:
         return self
@@ -321,14 +333,58 @@ class Recorder:
         self._summary["frames"] += 1
 
 
-def remove_partial_files(directory: str | os.PathLike, older_than: float = 3600.0) -> list[Path]:
-    """Delete the hidden `.NAME.*.part` files that recordings of a killed process left in `directory` (only those
-    older than `older_than` seconds, so a live recorder's file is kept). For the server to call at start-up."""
+# Who owns a partial file: the process that writes it holds an exclusive flock on it for as long as the file is
+# open. The kernel drops the lock when the process ends however it ends (kill -9 included), so a `.part` file that
+# can be locked has no writer left, whatever its age, and a process id reused by another program cannot make a
+# dead writer's file look owned (as a pid in the name could). Where flock does not exist (Windows), ownership
+# cannot be known and only files older than `older_than` are removed, as before.
+PARTIAL_MIN_AGE_S = 10.0  # a file this fresh may be between its creation and its writer's lock: left alone
+
+
+def _claim(fd: int) -> int | None:
+    """Lock the new file `fd` for this process; a duplicate descriptor that holds the lock (None without flock)."""
+    if fcntl is None:
+        return None
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # cannot fail: mkstemp just created the file
+    return os.dup(fd)  # the lock belongs to the open file, so it lasts until both descriptors are closed
+
+
+def _release(claim: int | None) -> None:
+    if claim is not None:
+        os.close(claim)
+
+
+def _unlink_if_unowned(path: Path) -> bool:
+    """Delete `path` if no process holds its lock (checked and deleted while holding the lock ourselves)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False  # a live recorder's file
+        path.unlink(missing_ok=True)
+        return True
+    finally:
+        os.close(fd)
+
+
+def remove_partial_files(directory: str | os.PathLike, older_than: float = 3600.0,
+                         min_age: float = PARTIAL_MIN_AGE_S) -> list[Path]:
+    """Delete the hidden `.NAME.*.part` files that recordings of an ended process left in `directory`: every one
+    at least `min_age` seconds old that no live process owns (see _claim), or, without file locks, those older
+    than `older_than` seconds. For the server at start-up and after plays; a live recorder's file is never touched."""
     removed = []
     now = time.time()
     for path in Path(directory).glob(".*.mcap.*.part"):
         try:
-            if now - path.stat().st_mtime >= older_than:
+            age = now - path.stat().st_mtime
+            if fcntl is not None:
+                if age >= min_age and _unlink_if_unowned(path):
+                    removed.append(path)
+            elif age >= older_than:
                 path.unlink()
                 removed.append(path)
         except FileNotFoundError:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 
 from kinetix.formats import BodySpec, JointSpec, LevelSpec, ThrusterSpec, build
 from kinetix.level import SIZES, LevelError, LevelFile, SizeClass, size_class
+from kinetix.ranges import RANGES
 from server.editor import levelio, properties
 from server.editor import selection as sel
 from server.editor.geometry import Point, contains, convexity_error, outline, polygon_body, rotate, to_local
@@ -581,9 +582,10 @@ class Editor:
         return self._commit(spec)
 
     def set_gravity(self, gx: float, gy: float) -> str | None:
+        bounds = RANGES["gravity"]  # the level format's range, so an accepted value always saves and loads
         for v in (gx, gy):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > 1000:
-                return self._say(f"gravity must be finite numbers within +-1000, got ({gx!r}, {gy!r})")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not bounds.low <= v <= bounds.high:
+                return self._say(f"gravity must be numbers in {bounds.text()}, got ({gx!r}, {gy!r})")
         spec = self._candidate()
         spec.gravity = (float(gx), float(gy))
         return None if spec == self.spec else self._commit(spec)

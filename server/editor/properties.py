@@ -9,12 +9,14 @@ from __future__ import annotations
 import math
 
 from kinetix.formats import LevelSpec
-from kinetix.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES
+from kinetix.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, PHYSICS_PARAMS, ROLE_NAMES
+from kinetix.ranges import RANGES
 
 BODY_FIELDS = ("role", "fixed", "density", "friction", "restitution", "collision_mode")
 JOINT_FIELDS = ("joint_type", "motor_on", "motor_speed", "motor_power", "motor_binding", "motor_auto", "limits_on",
                 "limit_min", "limit_max")
 THRUSTER_FIELDS = ("thruster_power", "thruster_direction", "thruster_binding")
+ENV_PARAMS = ("max_timesteps", "frame_skip", "dense_reward_scale")  # LevelParams besides the physics ones
 COLLISION_MODES = ("only walls", "normal", "everything")  # jax2d COLLIDE_ONLY_ALL, COLLIDE_NORMAL, COLLIDE_ALL
 
 
@@ -125,14 +127,11 @@ def apply(spec: LevelSpec, bodies: list[int], joints: list[int], thrusters: list
 
 # Episode and physics settings (kinetix.level.LevelParams) with the ranges the editor accepts. Frame skip and the
 # time step change the compiled play step, so a new value compiles once on the next play (10-15 s cold).
+# The bounds are the level format's own (kinetix.ranges), so the editor never accepts what a file may not hold.
 PARAM_RANGES: dict[str, tuple[type, float, float]] = {
-    "max_timesteps": (int, 1, 100_000),
-    "frame_skip": (int, 1, 16),
-    "dense_reward_scale": (float, 0.0, 10.0),
-    "dt": (float, 1.0 / 1000.0, 1.0 / 10.0),
-    "base_motor_speed": (float, 0.0, 1_000.0),
-    "base_motor_power": (float, 0.0, 1_000_000.0),
-    "base_thruster_power": (float, 0.0, 100_000.0),
+    name: (int if r.integer else float, r.low, r.high)
+    for name, r in ((name, RANGES[f"env.{name}" if name in ENV_PARAMS else f"env.physics.{name}"])
+                    for name in ENV_PARAMS + PHYSICS_PARAMS)
 }
 
 

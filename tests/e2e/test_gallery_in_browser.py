@@ -28,6 +28,25 @@ def _wait(predicate, timeout=30.0):
     wait_until(predicate, timeout)
 
 
+def _server_text_values(session) -> set:
+    """The values the server holds for the tab's GUI inputs (viser keeps one handle per input)."""
+    handles = list(session.client.gui._gui_input_handle_from_uuid.values())
+    return {h.value for h in handles if isinstance(getattr(h, "value", None), str)}
+
+
+def _fill(session, field, text: str) -> None:
+    """Type into a dialog field and wait until the server holds the value. Each field reaches the server as a GUI
+    update of its own; on a loaded machine one was seen to be lost after a fill, so the fill is retried."""
+    for _ in range(3):
+        field.fill(text)
+        try:
+            wait_until(lambda: text in _server_text_values(session), 10.0)
+            return
+        except TimeoutError:
+            field.fill("")
+    raise AssertionError(f"the server never received {text!r} (held: {_server_text_values(session)})")
+
+
 def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
     tab = Tab(browser, app, 1280, 800)
     try:
@@ -35,9 +54,9 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         page.get_by_role("button", name="Save to gallery", exact=True).click()
         dialog = page.get_by_role("dialog")
         # Every field of the dialog is found by its label (viser's labels tied to the inputs by labels.js).
-        dialog.get_by_label("Name", exact=True).fill("E2E <i>falling</i> win")
-        dialog.get_by_label("Description", exact=True).fill("a ball falls")
-        dialog.get_by_label("Tags (comma-separated)", exact=True).fill("e2e, falls")
+        for label, text in (("Name", "E2E <i>falling</i> win"), ("Description", "a ball falls"),
+                            ("Tags (comma-separated)", "e2e, falls")):
+            _fill(session, dialog.get_by_label(label, exact=True), text)
         dialog.get_by_role("button", name="Save", exact=True).click()
         _wait(lambda: session.gallery_id is not None)
         level_id = session.gallery_id

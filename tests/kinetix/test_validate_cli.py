@@ -52,7 +52,7 @@ def test_validate_reports_each_file_and_fails_if_any_fails(capsys, level_files):
                              str(theirs_path))
     assert code == 1
     assert lines == [f"OK  {ours_path}",
-                     f"FAIL {bad_path}: bodies[4].radius: must be > 0, got -1.0",
+                     f"FAIL {bad_path}: bodies[4].radius: -1 is out of range [0.001, 50]",
                      f"OK  {theirs_path}"]
     code, lines, err = run_cli(capsys, "validate", "--steps", str(STEPS), str(ours_path), str(theirs_path))
     assert code == 0 and lines == [f"OK  {ours_path}", f"OK  {theirs_path}"] and err == ""
@@ -124,7 +124,7 @@ def test_convert_resizes_and_leaves_the_output_untouched_on_error(capsys, tmp_pa
     assert code == 0 and load_level(out).size.name == "l"
     before = out.read_text()
     code, _, err = run_cli(capsys, "convert", str(bad_path), str(out), "--to", "ours")
-    assert code == 1 and "bodies[4].radius: must be > 0" in err
+    assert code == 1 and "bodies[4].radius: -1 is out of range [0.001, 50]" in err
     sim = scene.remove_body(empty_level("l").sim, 2)  # no right wall: the public format needs its 4 walls
     wallless = tmp_path / "wallless.json"
     wallless.write_text(dumps(LevelFile(make_level(sim))))

@@ -418,22 +418,81 @@ def test_a_replay_link_replays_the_levels_best_run(app, make_client):
 
 
 def test_start_up_removes_partial_leftovers(tmp_path):
+    import fcntl
     import os
 
     from server.recorder import PlayRecorder
 
     recorder = PlayRecorder(tmp_path)
-    old = tmp_path / "recent" / ".play-x.mcap.abc.part"
-    fresh = tmp_path / "recent" / ".play-y.mcap.def.part"
+    orphan = tmp_path / "recent" / ".play-x.mcap.abc.part"  # its writer is gone: nobody holds its lock
+    owned = tmp_path / "recent" / ".play-y.mcap.def.part"  # a live writer's (another server on the same data)
+    top = tmp_path / ".play-z.mcap.ghi.part"
     stale = tmp_path / "recent" / "play-old.mcap"
-    for path in (old, fresh, stale):
+    for path in (orphan, owned, top, stale):
         path.write_bytes(b"x")
-    os.utime(old, (time.time() - 7200, time.time() - 7200))
+        os.utime(path, (time.time() - 60, time.time() - 60))  # a minute old: past the creation-to-lock window
     os.utime(stale, (time.time() - 7200, time.time() - 7200))
-    removed = recorder.clean_up()
-    assert set(removed) == {old, stale}
-    assert fresh.exists(), "a live recorder's partial file (recent) is kept"
+    holder = os.open(owned, os.O_RDONLY)
+    fcntl.flock(holder, fcntl.LOCK_EX)
+    try:
+        removed = recorder.clean_up()
+    finally:
+        os.close(holder)
+    assert set(removed) == {orphan, top, stale}
+    assert owned.exists(), "a live recorder's partial file is kept"
+    assert recorder.clean_up() == [owned]  # its writer has gone now
     recorder.close()
+
+
+def _fill_recent(recorder, sizes: list[int]) -> list:
+    """Recordings of these sizes in recent/, one second apart in age, oldest first."""
+    import os
+
+    paths = []
+    for i, size in enumerate(sizes):
+        path = recorder.recent / f"play-{i:03d}.mcap"
+        path.write_bytes(b"x" * size)
+        age = time.time() - 100 + i
+        os.utime(path, (age, age))
+        paths.append(path)
+    return paths
+
+
+def test_recent_recordings_are_capped_by_count_oldest_first(tmp_path):
+    from server.recorder import RECENT_MAX_BYTES, RECENT_MAX_FILES, PlayRecorder
+
+    assert RECENT_MAX_FILES >= 8 and RECENT_MAX_BYTES >= 1 << 20  # room for each tab of a default server
+    recorder = PlayRecorder(tmp_path, max_files=5)
+    paths = _fill_recent(recorder, [10] * 8)
+    assert sorted(recorder.clean_up()) == paths[:3]
+    assert sorted(recorder.recent.iterdir()) == paths[3:]
+    recorder.close()
+
+
+def test_recent_recordings_are_capped_by_size_oldest_first(tmp_path):
+    from server.recorder import PlayRecorder
+
+    recorder = PlayRecorder(tmp_path, max_bytes=1000)
+    paths = _fill_recent(recorder, [400, 300, 300, 300, 200])  # 1500 bytes: the two oldest must go
+    assert sorted(recorder.clean_up()) == paths[:2]
+    assert sum(p.stat().st_size for p in recorder.recent.iterdir()) <= 1000
+    recorder.close()
+
+
+def test_the_cap_applies_as_plays_finish_and_spares_open_tabs(app, make_client, tmp_path, monkeypatch):
+    client = make_client(app)
+    session, _ = _session(app, client)
+    recorder = _recorder(app)
+    monkeypatch.setattr(recorder, "max_files", 3)
+    monkeypatch.setattr(recorder, "recent", tmp_path)  # only this test's files
+    old = _fill_recent(recorder, [10] * 3)
+    session.toggle_play()
+    _wait(lambda: session._steps >= 3)
+    session.stop()
+    finished = recorder.last_finished(session)
+    assert finished is not None and finished.path is not None and finished.path.exists()  # the tab's last play
+    _wait(lambda: not old[0].exists())  # swept right after the file is finished
+    assert sorted(tmp_path.iterdir()) == sorted(old[1:] + [finished.path])  # the oldest went to make room
 
 
 def test_a_recording_that_cannot_be_written_does_not_stop_the_play(app, make_client, tmp_path, monkeypatch):

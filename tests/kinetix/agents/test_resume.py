@@ -1,0 +1,171 @@
+"""Resumable training: a run split into jobs (a graceful stop, or a kill after periodic checkpoints, with the
+newest state file damaged) ends exactly where the uninterrupted run ends; state files are written atomically and
+a checkpoint of another configuration is refused with a clear error."""
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kinetix.agents import resume
+from kinetix.agents.checkpoint import CheckpointError
+from kinetix.agents.curricula import NEG, CurriculumConfig
+from kinetix.agents.ppo import TrainConfig
+from kinetix.agents.train import checkpoint_due, train_agent
+from kinetix.cli import main
+
+# Tiny and short: 4 chunks of 2 updates of 4 envs x 8 steps on random s levels with PLR (its buffer is filled
+# from the first update, so the curriculum state matters), about 15 s with a warm compile cache.
+CONFIG = TrainConfig(num_envs=4, num_steps=8, num_minibatches=2, update_epochs=1, width=16, hidden=32,
+                     updates_per_call=2)
+CURRICULUM = CurriculumConfig(buffer_size=4, candidates=4, attempts=1)
+STEPS = 4 * 8 * 8  # 8 updates
+RUN = dict(steps=STEPS, config=CONFIG, seed=3, curriculum="plr", curriculum_config=CURRICULUM)
+TIMING = ("elapsed", "steps_per_second")  # wall-clock fields: the only ones allowed to differ
+
+
+def final_state(out: Path) -> tuple[dict, dict]:
+    meta, arrays, path = resume.load_latest(out)
+    assert path.name == f"state-{8:09d}.msgpack"
+    return meta, arrays
+
+
+def assert_same_run(out: Path, reference: Path) -> None:
+    """Every array of the final training state (parameters, Adam moments and count, environments mid-episode,
+    PLR buffer levels and scores, RNG key, update index) and every logged metric equal the reference run's."""
+    meta, arrays = final_state(out)
+    ref_meta, ref_arrays = final_state(reference)
+    assert arrays.keys() == ref_arrays.keys()
+    for name in ref_arrays:
+        np.testing.assert_allclose(arrays[name], ref_arrays[name], rtol=1e-6, atol=1e-7, err_msg=name)
+    assert len(meta["history"]) == len(ref_meta["history"]) == 8
+    for got, want in zip(meta["history"], ref_meta["history"], strict=True):
+        for key in want:
+            if key not in TIMING:
+                assert got[key] == pytest.approx(want[key], rel=1e-5, abs=1e-7), key
+    metrics = json.loads((out / "metrics.json").read_text())["metrics"]
+    assert [m["update"] for m in metrics] == list(range(1, 9))  # the learning curve continues, not restarts
+    elapsed = [m["elapsed"] for m in metrics]
+    assert elapsed == sorted(elapsed)  # wall time adds up over the jobs
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("uninterrupted")
+    train_agent("random-s", out, **RUN, save_state=True)
+    _, arrays = final_state(out)
+    scores = next(v for k, v in arrays.items() if k.startswith(".curriculum") and "scores" in k)
+    assert (scores > NEG / 2).any()  # the PLR buffer holds levels: its state is exercised
+    return out
+
+
+@pytest.mark.slow
+def test_stopped_run_resumed_from_the_command_line_equals_uninterrupted(reference, tmp_path):
+    chunks = []
+    first = train_agent("random-s", tmp_path, **RUN, save_state=True, should_stop=lambda: len(chunks) >= 2,
+                        progress=lambda m: chunks.append(m) if m["update"] % 2 == 0 else None)
+    assert first["stopped"] and len(first["metrics"]) == 4 and not first["complete"]
+    # the second job: everything (level, curriculum, config, seed) comes from the saved run
+    assert main(["train", "--resume", str(tmp_path)]) == 0
+    assert_same_run(tmp_path, reference)
+    summary = json.loads((tmp_path / "metrics.json").read_text())
+    assert summary["resumed_at_update"] == 4 and not summary["stopped"] and summary["complete"]
+
+
+class Killed(Exception):
+    pass
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_from_last_good_checkpoint(reference, tmp_path):
+    def kill_in_chunk_four(m):
+        if m["update"] == 7:
+            raise Killed  # like SIGKILL: nothing written after the last periodic checkpoint
+
+    with pytest.raises(Killed):
+        train_agent("random-s", tmp_path, **RUN, checkpoint_every_updates=2, progress=kill_in_chunk_four)
+    directory = resume.state_dir(tmp_path)
+    assert sorted(p.name for p in directory.iterdir()) == ["state-000000004.msgpack", "state-000000006.msgpack"]
+    # the newest file was cut short (as by a crash that lost unsynced data), and a write was killed mid-way
+    newest = directory / "state-000000006.msgpack"
+    newest.write_bytes(newest.read_bytes()[:1000])
+    (directory / ".state-000000008.msgpack.999.tmp").write_bytes(b"half a file")
+    with pytest.warns(UserWarning, match="state-000000006.msgpack is damaged"):
+        train_agent("random-s", tmp_path, **RUN, resume=True)
+    assert_same_run(tmp_path, reference)
+    assert not list(directory.glob(".*.tmp"))  # leftovers are cleaned up by the next save
+
+
+@pytest.mark.slow
+def test_resume_with_another_configuration_is_refused(reference, tmp_path, capsys):
+    assert main(["train", "--resume", str(reference), "--lr", "0.001"]) == 2
+    err = capsys.readouterr().err
+    assert "different training configuration" in err and "train.lr: 0.0003 in the checkpoint, 0.001 now" in err
+    with pytest.raises(CheckpointError, match="seed: 3 in the checkpoint, 4 now"):
+        train_agent("random-s", reference, **dict(RUN, seed=4), resume=True)
+    with pytest.raises(CheckpointError, match="levels: 'random-s"):
+        train_agent("random-m", reference, **RUN, resume=True)
+
+
+def test_resume_without_state_is_a_clear_error(tmp_path, capsys):
+    assert main(["train", "--resume", str(tmp_path)]) == 2
+    assert "has no training state to resume" in capsys.readouterr().err
+    assert main(["train", "--steps", "100"]) == 2
+    assert "--level is required" in capsys.readouterr().err
+    assert main(["train", "--level", "random-s", "--resume", str(tmp_path), "--out", str(tmp_path / "x")]) == 2
+    assert "differs from --resume" in capsys.readouterr().err
+
+
+def arrays_at(update: int) -> dict:
+    return {".w": np.full((3,), update, np.float32), ".step": np.asarray(update, np.int32)}
+
+
+def test_state_files_are_atomic_and_the_last_good_one_wins(tmp_path):
+    for update in (2, 4, 6):
+        resume.save(tmp_path, update, {"run": {}, "history": [update]}, arrays_at(update))
+    directory = resume.state_dir(tmp_path)
+    assert sorted(p.name for p in directory.iterdir()) == ["state-000000004.msgpack", "state-000000006.msgpack"]
+    meta, arrays, path = resume.load_latest(tmp_path)
+    assert meta["history"] == [6] and arrays[".step"] == 6 and path.name == "state-000000006.msgpack"
+    # a leftover temporary file (a kill before the rename) is never read
+    (directory / ".state-000000008.msgpack.1.tmp").write_bytes(b"\x00" * 10)
+    assert resume.load_latest(tmp_path)[0]["history"] == [6]
+    # one flipped byte in the newest: the checksum catches it, the previous file is used
+    newest = directory / "state-000000006.msgpack"
+    data = bytearray(newest.read_bytes())
+    data[-5] ^= 0xFF
+    newest.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match="checksum mismatch"):
+        assert resume.load_latest(tmp_path)[0]["history"] == [4]
+    (directory / "state-000000004.msgpack").write_bytes(b"")
+    with warnings.catch_warnings(), pytest.raises(CheckpointError, match="no intact training state"):
+        warnings.simplefilter("ignore")
+        resume.load_latest(tmp_path)
+
+
+def test_restore_checks_paths_and_shapes():
+    import jax
+    import jax.numpy as jnp
+
+    template = {"w": jnp.zeros((3,), jnp.float32), "key": jax.random.key(1)}
+    saved = resume.flatten(resume.host_tree({"w": jnp.arange(3, dtype=jnp.float32), "key": jax.random.key(7)}))
+    restored = resume.restore(template, saved)
+    np.testing.assert_array_equal(restored["w"], [0, 1, 2])
+    assert (jax.random.key_data(restored["key"]) == jax.random.key_data(jax.random.key(7))).all()
+    with pytest.raises(CheckpointError, match=r"\['w'\] is float32\[4\], this run needs float32\[3\]"):
+        resume.restore(template, dict(saved, **{"['w']": np.zeros((4,), np.float32)}))
+    with pytest.raises(CheckpointError, match="does not fit"):
+        resume.restore(template, {"['w']": saved["['w']"]})
+
+
+def test_checkpoint_cadence():
+    assert not checkpoint_due(599.0, 3, every_minutes=10, every_updates=None)
+    assert checkpoint_due(600.0, 0, every_minutes=10, every_updates=None)
+    assert not checkpoint_due(10_000.0, 3, every_minutes=None, every_updates=4)
+    assert checkpoint_due(1.0, 4, every_minutes=None, every_updates=4)
+    assert checkpoint_due(1.0, 4, every_minutes=10, every_updates=4)  # whichever comes first
+    assert not checkpoint_due(10_000.0, 10_000, every_minutes=None, every_updates=None)
+    with pytest.raises(ValueError, match="checkpoint-every must be positive"):
+        train_agent("random-s", "/nonexistent", checkpoint_every=0)

@@ -1,4 +1,6 @@
-"""Startup: viser on an internal ephemeral port, the side server on the user's port, sessions, warm-up, Ctrl+C.
+"""Startup: viser on an internal port of 127.0.0.1, the side server on the user's port, sessions, warm-up, Ctrl+C.
+
+Browsers reach everything through the user's port: the side server relays viser's websocket (server.http).
 
     app = App(Config(port=0)).start()     # port 0: any free port (tests)
     print(app.url)                        # the one URL to open
@@ -41,6 +43,7 @@ class Config:
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
     record: bool = True  # record every play to MCAP (server.recorder); the tab's Recordings folder needs it
+    drafts: bool = True  # keep every tab's work as a draft in <data>/drafts (server.draft_tab): reloads lose nothing
     recent_max_files: int | None = None  # cap on recordings/recent (None: server.recorder.RECENT_MAX_FILES)
     recent_max_bytes: int | None = None  # its cap in bytes (None: server.recorder.RECENT_MAX_BYTES)
     agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
@@ -70,6 +73,7 @@ class App:
         self.recorder = None  # the PlayRecorder (server.recorder), once started
         self.training = None  # the TrainingPool, with agents on
         self.agents = None  # the AgentLink, with agents on
+        self.drafts = None  # the DraftStore, with drafts on
 
     @property
     def port(self) -> int:
@@ -86,7 +90,7 @@ class App:
         import viser
 
         from server import play
-        from server.http import create_app
+        from server.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
         from server.memory import keep_frame_buffers_resident
         from server.session import SessionManager
         from server.web_security import allowed_hosts_for
@@ -128,7 +132,8 @@ class App:
         else:
             after_compiles()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
-            self.viser = viser.ViserServer(host=self.config.host, port=0, verbose=False)
+            # Loopback only, whatever --host says: the one port the user gave is the only one others can reach.
+            self.viser = viser.ViserServer(host=VISER_HOST, port=0, verbose=False)
         self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)
         # Docked, the panel sits beside the canvas instead of floating over its right third, so no part of the level
         # hides behind it, and the browser renders a smaller canvas (headless Chromium at a 1280x800 window:
@@ -148,7 +153,10 @@ class App:
         app = create_app(self.manager, self.viser.get_port(), gallery_router=router,
                          allowed_hosts=allowed_hosts_for(self.config.host, self.config.allowed_hosts))
         self._attach_agents()
-        config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
+        self._attach_drafts()
+        # No per-message deflate: viser's frames are zstd and JPEG already, and deflating them per tab costs CPU.
+        config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=MAX_BROWSER_MESSAGE,
+                                ws_per_message_deflate=False)
         self._uvicorn = uvicorn.Server(config)
         self._uvicorn.install_signal_handlers = lambda: None  # the main thread handles Ctrl+C
         self._thread = threading.Thread(target=self._uvicorn.run, kwargs={"sockets": [sock]},
@@ -224,11 +232,26 @@ class App:
                                 recorder=self.recorder if self.config.record else None)
         self.agents.attach(self.manager)
 
+    def _attach_drafts(self) -> None:
+        """Drafts and the address bar (last, so `?draft=` is looked at before the gallery's and agents' links)."""
+        if not self.config.drafts:
+            return
+        from server.draft_tab import DraftLink
+        from server.drafts import DraftStore
+
+        self.drafts = DraftStore(Path(self.config.data or default_data_dir()) / "drafts")
+        removed = self.drafts.clean_up()
+        if removed:
+            log.info("removed %d old drafts", len(removed))
+        DraftLink(self.drafts).attach(self.manager)
+
     def stop(self) -> None:
         from server import play
 
         if self.manager is not None:
             self.manager.close_all()
+        if self.drafts is not None:
+            self.drafts.close()  # write the drafts still queued
         if self.recorder is not None:
             self.recorder.close()  # finish recordings of plays cut short by the shutdown
         if self.training is not None:

@@ -5,10 +5,11 @@
   page to the moment the frame stepped with that key is drawn on the page's canvas (static/frames.js; the server
   puts the key's sequence number in a hidden element in the same batch as the frame), p50 and p90;
 - frames per second the Chromium page drew (not just received) while playing one level;
-- key-to-wire latency: the same, ending when a headless protocol client receives that batch (server side only);
-- fps delivered to one tab and to each of 8 concurrent playing sessions, counted at the websocket by headless
-  protocol clients in a child process (browser tabs with software WebGL would measure the 2-core machine's
-  CPU, not the server);
+- key-to-wire latency: the same, ending when a headless protocol client receives that batch (server side only),
+  through the user's port and, to show what the websocket relay costs, straight to viser's internal port;
+- fps delivered to one tab and to each of 8 concurrent playing sessions (through the user's port), counted at the
+  websocket by headless protocol clients in a child process (browser tabs with software WebGL would measure the
+  2-core machine's CPU, not the server);
 - peak RSS of this process (the server) while 8 sessions play.
 """
 
@@ -89,35 +90,44 @@ def _latency(app, chromium: str, samples: int) -> tuple[list[float], float]:
     return latencies, (drawn1 - drawn0) / (t1 - t0) * 1000
 
 
-def _wire_latency(app, samples: int) -> list[float]:
-    """ms from sending a key on /keys to the frame batch carrying its ack arriving at a protocol client."""
+def _wire_latency(app, samples: int) -> tuple[list[float], list[float]]:
+    """ms from sending a key on /keys to the frame batch carrying its ack arriving at a protocol client: through the
+    user's port (viser's websocket relayed by the side server, as browsers get it) and, for the relay's cost, straight
+    to viser's internal port. The two tabs take turns (in alternating order), so the machine's load hits both alike."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
     from viser_client import KeysSocket, ViserTestClient, session_nonce
 
-    client = ViserTestClient(app.viser.get_port(), 640, 480)
-    keys = None
+    tabs = []
     try:
-        client.wait_frame(timeout=30)
-        keys = KeysSocket(app.port, session_nonce(client))
-        keys.down("Space")
+        for port in (app.port, app.viser.get_port()):
+            client = ViserTestClient(port, 640, 480)
+            tabs.append((client, None))
+            client.wait_frame(timeout=30)
+            tabs[-1] = (client, KeysSocket(app.port, session_nonce(client)))
+        for _, keys in tabs:
+            keys.down("Space")
         time.sleep(0.5)
-        latencies = []
+        latencies: tuple[list[float], list[float]] = ([], [])
         for i in range(samples):
             code = "ArrowRight" if i % 2 == 0 else "ArrowLeft"
-            start = client.count()
-            t0 = time.perf_counter()
-            seq = keys.down(code)
-            client.wait_for(lambda m: m["type"] == "GuiUpdateMessage" and f'data-seq="{seq}"' in str(m.get("updates")),
-                            timeout=5, start=start)
-            latencies.append((time.perf_counter() - t0) * 1000)
-            keys.up(code)
-            time.sleep(0.05)
-        keys.down("Space")
+            for k in (0, 1) if i % 2 == 0 else (1, 0):  # who goes first alternates: no order bias
+                (client, keys), out = tabs[k], latencies[k]
+                start = client.count()
+                t0 = time.perf_counter()
+                seq = keys.down(code)
+                client.wait_for(lambda m, seq=seq: m["type"] == "GuiUpdateMessage"
+                                and f'data-seq="{seq}"' in str(m.get("updates")), timeout=5, start=start)
+                out.append((time.perf_counter() - t0) * 1000)
+                keys.up(code)
+                time.sleep(0.05)
+        for _, keys in tabs:
+            keys.down("Space")
         return latencies
     finally:
-        if keys is not None:
-            keys.close()
-        client.close()
+        for client, keys in tabs:
+            if keys is not None:
+                keys.close()
+            client.close()
         deadline = time.monotonic() + 10
         while app.manager.sessions and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -132,7 +142,7 @@ def _fps(app, sessions: int, seconds: float) -> list[float]:
     import subprocess
 
     child = subprocess.Popen([sys.executable, "-c", "from server.bench import client_process; client_process()",
-                              str(app.viser.get_port()), str(sessions), str(seconds)],
+                              str(app.port), str(sessions), str(seconds)],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                              cwd=Path(__file__).resolve().parents[1])
     try:
@@ -158,8 +168,8 @@ def _fps(app, sessions: int, seconds: float) -> list[float]:
 
 
 def client_process() -> None:
-    """Child of _fps: argv = viser port, number of tabs, seconds; prints "connected", waits for "go", then the
-    frames per second each tab received as a JSON list."""
+    """Child of _fps: argv = the server's port (it relays viser's websocket), number of tabs, seconds; prints
+    "connected", waits for "go", then the frames per second each tab received as a JSON list."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
     from viser_client import ViserTestClient  # the headless client of the protocol tests
 
@@ -198,9 +208,11 @@ def run(args: argparse.Namespace) -> int:
             _print("fps_drawn_in_chromium", drawn_fps, "fps", args.json)
         else:
             print(f"no chromium at {args.chromium}: latency not measured (run .ci/setup-chromium.sh)", file=sys.stderr)
-        wire = sorted(_wire_latency(app, args.samples))
+        wire, direct = (sorted(x) for x in _wire_latency(app, args.samples))
         _print("key_to_wire_p50", statistics.median(wire), "ms", args.json, samples=len(wire))
         _print("key_to_wire_p90", wire[int(0.9 * (len(wire) - 1))], "ms", args.json, samples=len(wire))
+        _print("key_to_wire_direct_p50", statistics.median(direct), "ms", args.json, samples=len(direct))
+        _print("key_to_wire_direct_p90", direct[int(0.9 * (len(direct) - 1))], "ms", args.json, samples=len(direct))
         one = _fps(app, 1, args.seconds)
         _print("fps_one_session", one[0], "fps", args.json)
         many = _fps(app, args.sessions, args.seconds)

@@ -1,10 +1,13 @@
-"""The side server on the user's port: viser's page with our key script, static files, /keys, and the gallery API.
+"""The side server on the user's port: viser's page with our scripts, viser's websocket, static files, /keys, the API.
 
 viser serves only its own client build and has no hooks for routes, so this FastAPI app (run by uvicorn in
-a background thread, see server.app) is the one URL the user opens:
+a background thread, see server.app) is the one URL the user opens, and the only port the app listens on for
+the outside world (viser itself listens on an ephemeral port of 127.0.0.1):
 
-    GET /            viser's client/build/index.html with `window.__KINETIX__ = {viserPort}`, frames.js and keys.js
-                     injected
+    GET /            viser's client/build/index.html with frames.js and keys.js injected (relative paths, so the
+                     page also works under a reverse proxy or TLS)
+    WS  /            viser's websocket, relayed to viser's internal port (viser's client connects to the page's own
+                     URL when the page has no ?websocket= parameter; keys.js removes a stale one)
     GET /static/...  files of static/
     WS  /keys        key events from keys.js, paired to the tab's session by the nonce the session put in the page
     GET /gallery     static/gallery.html, the gallery page; only with the gallery router (it calls /api)
@@ -14,10 +17,13 @@ a background thread, see server.app) is the one URL the user opens:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
+import weakref
 from pathlib import Path
 
+import websockets
 from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, PlainTextResponse
 from fastapi.staticfiles import StaticFiles
@@ -29,6 +35,11 @@ log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 KEY_FIELDS = ("ctrl", "shift", "alt", "meta")
 MAX_KEY_MESSAGE = 1024  # bytes; anything longer is not a key event
+# The largest message a browser may send on any websocket of the side server (uvicorn's ws_max_size): viser's
+# client uploads files in 512 KiB parts, msgpack-framed. Key events are cut at MAX_KEY_MESSAGE anyway.
+MAX_BROWSER_MESSAGE = 1 << 20
+UNSENDABLE_CLOSE_CODES = (1005, 1006, 1015)  # reported by a websocket library, never sent in a close frame
+VISER_HOST = "127.0.0.1"  # viser listens here only; browsers reach it through the relay below
 
 
 def viser_index_html() -> str:
@@ -37,11 +48,12 @@ def viser_index_html() -> str:
     return (Path(viser.__file__).parent / "client" / "build" / "index.html").read_text(encoding="utf-8")
 
 
-def inject(page: str, viser_port: int) -> str:
-    """The viser page with our configuration, frame display and key script right after <head>."""
-    snippet = (f"<script>window.__KINETIX__ = {json.dumps({'viserPort': viser_port})};</script>"
-               '<script src="/static/frames.js"></script><script src="/static/keys.js"></script>'
-               '<script src="/static/labels.js"></script>')  # ties viser's labels to their inputs
+def inject(page: str) -> str:
+    """The viser page with our frame display, key script and labels right after <head> (before viser's code).
+
+    The paths are relative to the page, so a reverse proxy may serve the app under a path of its own."""
+    snippet = ('<script src="static/frames.js"></script><script src="static/keys.js"></script>'
+               '<script src="static/labels.js"></script>')  # labels.js ties viser's labels to their inputs
     head = page.find("<head>")
     if head < 0:
         raise ValueError("viser's index.html has no <head>; cannot inject the key script")
@@ -53,12 +65,16 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
     """The side server's app. `manager` is a server.session.SessionManager (it maps nonces to sessions).
     Requests must name one of `allowed_hosts` (server.web_security: Host/Origin checks, security headers)."""
     app = FastAPI(title="Kinetix playground", docs_url="/docs", openapi_url="/openapi.json")
-    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)
-    page = inject(viser_index_html(), viser_port)
+    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)  # also guards the relay of viser's websocket
+    page = inject(viser_index_html())
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def index() -> HTMLResponse:
         return HTMLResponse(page, headers={"Cache-Control": "no-store"})
+
+    @app.websocket("/")
+    async def viser_socket(socket: WebSocket) -> None:
+        await relay_to_viser(socket, viser_port)
 
     @app.get("/health", response_class=PlainTextResponse, include_in_schema=False)
     def health() -> str:
@@ -73,6 +89,8 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
 
     if gallery_router is not None:
         app.include_router(gallery_router, prefix="/api")
+
+    opened: weakref.WeakSet = weakref.WeakSet()  # sessions whose page query was handled (the first hello)
 
     @app.websocket("/keys")
     async def keys(socket: WebSocket) -> None:
@@ -94,11 +112,15 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 return
             if isinstance(hello.get("token"), str) and hello["token"]:
                 session.author_token = hello["token"]  # the gallery author token the browser keeps
-            await socket.send_text(json.dumps({"type": "ready"}))
             query = hello.get("query")
-            if isinstance(query, str) and query and manager.on_query is not None:
-                # e.g. /?level=<gallery id>&mode=play: the page's query reaches Python only through this socket.
+            if isinstance(query, str) and manager.on_query is not None and session not in opened:
+                # e.g. /?level=<gallery id>&mode=play, ?draft=<id>, or "" (a new tab gets a draft id): the page's
+                # query reaches Python only through this socket. Once per session: keys.js opens /keys again after
+                # a network blip, and that must not reopen the level under the player. Before "ready", so keys
+                # pressed meanwhile (keys.js queues them) act on the opened level, not on the placeholder.
+                opened.add(session)
                 await asyncio.get_running_loop().run_in_executor(None, manager.on_query, session, query)
+            await socket.send_text(json.dumps({"type": "ready"}))
             while True:
                 event = await _receive(socket)
                 kind, code = event.get("type"), event.get("code")
@@ -119,6 +141,55 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
 
     app.mount("/static", StaticFiles(directory=static_dir), name="static")
     return app
+
+
+async def relay_to_viser(socket: WebSocket, viser_port: int) -> None:
+    """Relay one browser websocket to viser's internal port, message for message, both ways, until either closes.
+
+    The browser's subprotocol (viser-v<version>) is passed on, and viser's choice and close code come back, so
+    viser's own version check still works. No compression on the loopback leg: viser's windows are zstd and JPEG.
+    """
+    offered = [p.strip() for p in socket.headers.get("sec-websocket-protocol", "").split(",") if p.strip()]
+    try:
+        upstream = await websockets.connect(f"ws://{VISER_HOST}:{viser_port}", subprotocols=offered or None,
+                                            compression=None, max_size=None, ping_interval=None, open_timeout=10)
+    except (OSError, TimeoutError, websockets.InvalidHandshake) as error:
+        log.warning("viser's websocket is not reachable: %s", error)
+        await socket.close(code=1011, reason="the viewer is not running")
+        return
+    await socket.accept(subprotocol=upstream.subprotocol)
+
+    async def to_viser() -> None:
+        while True:
+            message = await socket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            data = message.get("bytes")
+            await upstream.send(data if data is not None else message.get("text") or "")
+
+    async def to_browser() -> None:
+        with contextlib.suppress(websockets.ConnectionClosed):
+            async for data in upstream:
+                if isinstance(data, bytes):
+                    await socket.send_bytes(data)
+                else:
+                    await socket.send_text(data)
+
+    tasks = [asyncio.create_task(to_viser()), asyncio.create_task(to_browser())]
+    try:
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in tasks:
+            task.cancel()
+        for task in tasks:  # a send into a closed socket ends its task with an error; nothing is left to relay
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        await upstream.close()
+        code = upstream.close_code
+        if code is None or code in UNSENDABLE_CLOSE_CODES:
+            code = 1011  # viser went away without a proper close (e.g. a server restart)
+        with contextlib.suppress(Exception):  # the browser may have gone already
+            await socket.close(code=code, reason=upstream.close_reason or "")
 
 
 async def _receive(socket: WebSocket) -> dict:

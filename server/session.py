@@ -69,6 +69,10 @@ class PlayListener:
     def play_ended(self, session: Session, result: str, steps: int, seconds: float) -> None:
         """The episode ended ("solved" | "failed" | "truncated" | "nan"), or was stopped ("stopped")."""
 
+    def level_changed(self, session: Session) -> None:
+        """The edited level or its undo history may have changed (after an edit-mode frame, and when the tab's
+        gallery level changes); runs with the session's lock held. server.draft_tab keeps drafts with it."""
+
     def session_opened(self, session: Session) -> None:
         """A tab's session was built (its GUI exists): add per-tab GUI here (e.g. server.replay's panel)."""
 
@@ -212,7 +216,7 @@ class Session:
         self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
         self._view = draw.View(512, 512)
         self.author_token: str | None = None  # the tab's gallery author token (from localStorage, via /keys)
-        self.gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
+        self._gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self.replay = None  # a server.replay.Replay while the tab shows a recording (mode "replay")
         self.ended_player = "human"  # the player of the last play that ended (see _finish_step)
@@ -220,6 +224,18 @@ class Session:
         self._wire_pointer()
         self.refresh(force=True)
         manager.notify("session_opened", self)
+
+    @property
+    def gallery_id(self) -> str | None:
+        """The gallery level this tab opened or saved, if any (a later save is a remix of it)."""
+        return self._gallery_id
+
+    @gallery_id.setter
+    def gallery_id(self, level_id: str | None) -> None:
+        with self.lock:
+            changed, self._gallery_id = level_id != self._gallery_id, level_id
+            if changed:
+                self.manager.notify("level_changed", self)
 
     # ------------------------------------------------------------------ GUI and pointer wiring
 
@@ -635,6 +651,7 @@ class Session:
                 return
             self._pushed_key = key
             self._push_frame()
+            self.manager.notify("level_changed", self)
 
     def _push_frame(self, ack: bool = False, background: bool = False) -> None:
         """Render now and send the frame; with `background`, encode and send it on the manager's encoder threads.

@@ -14,8 +14,9 @@
   policy that also allows the CDNs they load from.
 
 The CSP fits viser's page: its loader is an inline script that decompresses the client with WebAssembly and adds it
-as an inline module, the client uses blob: workers and data:/blob: images, and it talks to viser's websocket on
-another (internal) port of the same host, hence `ws:`/`wss:` in connect-src. tests/e2e checks the page still loads.
+as an inline module, and the client uses blob: workers and data:/blob: images. Its websocket and /keys are on the
+page's own origin (the side server relays viser's websocket, server/http.py), so connect-src is 'self' (which
+covers ws:/wss: to the same host and port). tests/e2e checks the page still loads.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ CONTENT_SECURITY_POLICY = "; ".join([
     "style-src 'self' 'unsafe-inline'",
     "img-src 'self' data: blob:",
     "font-src 'self' data:",
-    "connect-src 'self' ws: wss: data: blob:",
+    "connect-src 'self' data: blob:",
     "worker-src 'self' blob:",
     "object-src 'none'",
     "base-uri 'self'",

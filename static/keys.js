@@ -5,12 +5,15 @@
 // All keys are released when the window loses focus, so a thruster never stays on.
 (function () {
   "use strict";
-  const config = window.__KINETIX__ || {};
-  // Point viser's client at its internal port (the documented ?websocket= parameter), on the same host.
+  // viser's client connects to the page's own URL (ws: or wss: as the page) unless ?websocket= names another
+  // server. The side server relays that socket to viser, so the app needs no second port: drop the parameter
+  // that older versions wrote (an internal port that changed at every start) from bookmarks and copied links,
+  // before viser's code reads it.
   const params = new URLSearchParams(location.search);
-  if (config.viserPort && !params.has("websocket")) {
-    params.set("websocket", "ws://" + location.hostname + ":" + config.viserPort);
-    history.replaceState(null, "", location.pathname + "?" + params.toString() + location.hash);
+  if (params.has("websocket")) {
+    params.delete("websocket");
+    const query = params.toString();
+    history.replaceState(null, "", location.pathname + (query ? "?" + query : "") + location.hash);
   }
 
   // Keys we own: play keys, Space, editor shortcuts. viser's camera also listens to WASD/QE/arrows; we stop those.
@@ -18,6 +21,7 @@
     "KeyQ", "KeyE", "Digit1", "Digit2", "Numpad1", "Numpad2", "Space", "Delete", "Backspace", "Escape",
     "Enter", "KeyR"]);
   const SHORTCUT = new Set(["KeyZ", "KeyY", "KeyC", "KeyV", "KeyD", "KeyX"]);
+  const RETRY_MS = 1000;
   const held = new Set();
   let socket = null, ready = false, nonce = null, seq = 0;
   const queue = [];
@@ -37,8 +41,26 @@
     if (token && localStorage.getItem(TOKEN_KEY) !== token) localStorage.setItem(TOKEN_KEY, token);
   }
 
+  // The address bar names what the tab shows (?level=<gallery id> or ?draft=<id>): the session puts the query in
+  // <div id="kinetix-address" data-query=...> and we show it, so a reload or a copied link reopens the same thing.
+  function showAddress() {
+    const el = document.getElementById("kinetix-address");
+    const query = el && el.getAttribute("data-query");
+    if (query && query !== location.search) history.replaceState(null, "", location.pathname + query + location.hash);
+  }
+
+  // The /keys socket, relative to the page (ws: or wss: as the page).
+  function keysUrl() {
+    const url = new URL("keys", location.href);
+    url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+    url.search = "";
+    url.hash = "";
+    return url.href;
+  }
+
   function connect() {
     keepToken();
+    showAddress();
     const el = document.getElementById("kinetix-session");
     if (!el) return false;
     const found = el.getAttribute("data-nonce");
@@ -46,16 +68,24 @@
     nonce = found;
     ready = false;
     if (socket) socket.close();
-    socket = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/keys");
-    socket.onopen = () => socket.send(JSON.stringify({ type: "hello", nonce, query: location.search,
+    const own = new WebSocket(keysUrl());
+    socket = own;
+    // The query names what this tab had open: after a reconnect (a new session) the server reopens it.
+    own.onopen = () => own.send(JSON.stringify({ type: "hello", nonce, query: location.search,
       token: localStorage.getItem(TOKEN_KEY) }));
-    socket.onmessage = (ev) => {
+    own.onmessage = (ev) => {
       if (JSON.parse(ev.data).type === "ready") {
         ready = true;
-        while (queue.length) socket.send(JSON.stringify(queue.shift()));
+        while (queue.length) own.send(JSON.stringify(queue.shift()));
       }
     };
-    socket.onclose = () => { ready = false; };
+    own.onclose = () => {
+      if (socket !== own) return;
+      ready = false;
+      // A dropped key socket (a network blip) is opened again; a server restart gives the tab a new session and
+      // nonce, which the observer below picks up instead.
+      setTimeout(() => { if (socket === own) { nonce = null; connect(); } }, RETRY_MS);
+    };
     return true;
   }
   // The nonce element arrives with viser's GUI messages after load; watch the DOM until it appears (and again

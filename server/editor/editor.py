@@ -202,6 +202,21 @@ class Editor:
     def redo(self) -> bool:
         return self._restore(self.history.redo(self._snapshot()))
 
+    def load_draft(self, spec: LevelSpec, size: SizeClass, undo: list[tuple[LevelSpec, SizeClass]],
+                   redo: list[tuple[LevelSpec, SizeClass]]) -> None:
+        """Become a saved draft (server.drafts): this level and these undo/redo stacks, oldest first.
+
+        Only the current level is built (LevelError if it does not build): the undo steps were built when made."""
+        file = build(spec, size)
+        self._cancel()
+        self.spec, self.size, self._file = spec, size, file
+        self.history.undo_stack[:] = [Snapshot(s, z) for s, z in undo][-self.history.limit:]
+        self.history.redo_stack[:] = [Snapshot(s, z) for s, z in redo]
+        self.selection = []
+        self.message = None
+        self._bump()
+        self._file_revision = self.revision
+
     # ------------------------------------------------------------ tools and pointer input
 
     def set_tool(self, name: str) -> None:

@@ -133,7 +133,8 @@ class BestRuns:
     def candidate(self, recorder, session, result: str, steps: int, seconds: float,
                   player: str = "human") -> str | None:
         """For a finished play of a gallery level: the best-run file name to record with it, if this play is a
-        human solve whose recording (server.recorder.PlayRecorder) beats the kept best run; else None. `player`:
+        human solve that beats the kept best run and whose recording (server.recorder.PlayRecorder) proves it
+        (`offer`); else None. `player`:
         the recording's player ("human", or "race" for the human's side of a race, which is the session's play).
         Waits for the recording to be finished, so call it off the play thread (on_play_end runs on its own)."""
         if result != "solved":

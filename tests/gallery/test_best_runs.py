@@ -186,3 +186,21 @@ def test_api_serves_the_best_run_or_a_404_with_a_message(runs, tmp_path, unverif
         (runs.directory / name).unlink()  # a file lost behind the database's back: 404, not a 500
         assert client.get(f"/api/levels/{level_id}/best-run.mcap").status_code == 404
         assert "best-run.mcap" in str(client.get("/openapi.json").json()["paths"])
+
+
+def test_a_level_opened_in_a_tab_plays_bitwise_the_gallerys_stored_level():
+    """The proof compares the recording's level with load_level(stored document): a genuine play must pass."""
+    import json
+
+    from kinetix.formats import build
+    from kinetix.levels import read_json
+    from server.editor import levelio
+    from server.gallery.proof import _same_level
+    from server.gallery.store import REPO_LEVELS
+
+    files = sorted(Path(REPO_LEVELS).glob("*.json"))
+    assert files
+    for path in files:
+        document = to_document(load_level(read_json(path)))  # what the gallery stores and serves
+        spec, size = levelio.parse(json.dumps(document).encode(), path.name)  # what Session.open_level plays
+        assert _same_level(build(spec, size), load_level(document)), path.name

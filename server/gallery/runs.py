@@ -49,6 +49,7 @@ class BestRuns:
         self.directory = Path(store.recordings_dir)
         self.directory.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()  # one prune at a time in this process (the database orders the rest)
+        self._said_unrecorded = False
 
     def best_run_file(self, level_id: str) -> Path | None:
         """The recording of the play that set the level's best time, or None (no verified human solve yet, or its
@@ -139,7 +140,12 @@ class BestRuns:
         Waits for the recording to be finished, so call it off the play thread (on_play_end runs on its own)."""
         if result != "solved":
             return None
-        finished = recorder.last_finished(session) if recorder is not None else None
+        if recorder is None:  # kinetix serve --no-record: said once, not once per solve
+            if not self._said_unrecorded:
+                self._said_unrecorded = True
+                log.warning("plays are not recorded (--no-record), so no play sets a best time")
+            return None
+        finished = recorder.last_finished(session)
         path = finished.path if finished is not None else None
         if finished is not None and (finished.player != player or finished.result != "solved"
                                      or finished.level_id != session.gallery_id or finished.steps != steps):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -67,9 +68,13 @@ def test_only_the_best_human_solve_keeps_its_recording(runs, tmp_path, unverifie
 def test_a_solve_without_a_recording_counts_as_a_play_but_sets_no_best_time(runs, tmp_path, caplog):
     level_id, _ = runs.store.create_level("lvl", level_doc())
     runs.store.record_play(level_id, "human", solved=True, steps=38, seconds=38 / 30)  # e.g. --no-record
+    tab = SimpleNamespace(gallery_id=level_id)
     with caplog.at_level(logging.WARNING, "server.gallery.runs"):
         assert runs.offer(level_id, None, 38, 38 / 30) is None
+        assert runs.candidate(None, tab, "solved", 38, 38 / 30) is None  # a server without a PlayRecorder
+        assert runs.candidate(None, tab, "solved", 38, 38 / 30) is None
     assert "sets no best time: the play has no recording" in caplog.text
+    assert caplog.text.count("plays are not recorded (--no-record)") == 1, "said once"
     stats = runs.store.stats(level_id)
     assert stats["human_solved"] == 1 and stats["best_human_seconds"] is None and stats["has_best_run"] is False
     assert runs.best_run_file(level_id) is None

@@ -77,8 +77,8 @@ def why_not_a_record(path: Path | None, *, level_id: str, player: str, steps: in
     with VERIFY_LOCK:
         try:
             check = verify(recording)
-        except RecordingError as error:
-            return f"its recording cannot be re-simulated: {error}"
+        except Exception as error:  # noqa: BLE001 - e.g. actions of the wrong shape in an edited file
+            return f"its recording cannot be re-simulated: {type(error).__name__}: {error}"
     if not check.ok:
         return f"its recording does not re-simulate: step {check.divergent_step}: {check.detail}"
     return None

@@ -80,16 +80,18 @@ class BestRuns:
         except StoreError as error:  # e.g. deleted meanwhile
             log.warning("play on %s sets no best time: %s", level_id, error)
             return None
-        reason = why_not_a_record(source, level_id=level_id, player=player, steps=steps, seconds=seconds,
-                                  level_document=document)
-        if reason is not None:
-            log.warning("play on %s (%d steps, %.3f s) sets no best time: %s", level_id, steps, seconds, reason)
-            return None
         name = f"{PREFIX}{level_id}-{secrets.token_hex(6)}.mcap"
         target = self.directory / name
         partial = self.directory / f".{name}.copy.part"  # hidden and swept like the Recorder's partial files
         try:
-            shutil.copyfile(source, partial)
+            if source is not None:  # the proof reads the copy: the kept bytes are the verified bytes
+                shutil.copyfile(source, partial)
+            reason = why_not_a_record(None if source is None else partial, level_id=level_id, player=player,
+                                      steps=steps, seconds=seconds, level_document=document)
+            if reason is not None:
+                log.warning("play on %s (%d steps, %.3f s) sets no best time: %s", level_id, steps, seconds, reason)
+                partial.unlink(missing_ok=True)
+                return None
             os.replace(partial, target)
         except OSError as error:
             partial.unlink(missing_ok=True)

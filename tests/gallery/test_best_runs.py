@@ -156,6 +156,7 @@ def test_tampered_or_mismatched_recordings_are_refused_and_the_record_stays(runs
     stats = runs.store.stats(level_id)
     assert (stats["best_human_steps"], stats["best_human_seconds"]) == (100, 5.0)
     assert runs.best_run_file(level_id) == kept
+    assert sorted(p.name for p in runs.directory.iterdir()) == [kept.name], "refused copies leave nothing"
 
 
 def test_orphans_and_other_levels(runs, tmp_path, unverified):

@@ -1,9 +1,10 @@
 """Best runs: the gallery keeps the recording of the best human solve of each level, and only that one.
 
-Best = fewest simulated seconds, ties broken by fewest steps, then by the earlier play. The kept run is shown as
-the level's best run only while it set the best time: when a faster human solve has no recording (a server
-started with --no-record, a recording that failed), the best time has no run to show and `best_run_file` says so
-(None), rather than offering a slower run beside a better time. Retention rule: a level
+Best = fewest simulated seconds, ties broken by fewest steps, then by the earlier play. A play sets a record only
+with a recording that proves it (server.gallery.proof: re-simulated bitwise, the gallery's level, the claimed
+steps): the best time and the best run come from the same verified play, in one code path (`offer`). A solve
+without such a recording (a server started with --no-record, a recording that failed, was tampered with or does
+not verify) counts as a play but sets no best time; the reason is logged once. Retention rule: a level
 has at most one recording file in the gallery (`best-<level>-<random>.mcap` in `store.recordings_dir`), named by
 the `recording_path` of its play row. A new solve's recording is copied in only if it beats the kept one; then
 the superseded row's `recording_path` is cleared and its file deleted. Files no row names (a crash between the
@@ -20,19 +21,14 @@ import shutil
 import threading
 from pathlib import Path
 
-from sqlalchemy import and_, func, select, update
+from sqlalchemy import and_, select, update
 
-from server.gallery.store import Store, check_id, plays_t
+from server.gallery.proof import why_not_a_record
+from server.gallery.store import Store, StoreError, check_id, plays_t
 
 log = logging.getLogger(__name__)
 
 PREFIX = "best-"
-
-
-def _best_seconds(conn, level_id: str) -> float | None:
-    """The level's best human time (recorded or not), as the gallery's stats show it."""
-    return conn.execute(select(func.min(plays_t.c.seconds)).where(
-        and_(plays_t.c.level_id == level_id, plays_t.c.kind == "human", plays_t.c.solved))).scalar()
 
 
 def _best_rows(conn, level_id: str):
@@ -53,34 +49,49 @@ class BestRuns:
         self.directory = Path(store.recordings_dir)
         self.directory.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()  # one prune at a time in this process (the database orders the rest)
+        self._said_unrecorded = False
 
     def best_run_file(self, level_id: str) -> Path | None:
-        """The recording of the play that set the level's best time, or None (no recorded human solve, its file is
-        gone, or a faster solve was not recorded)."""
+        """The recording of the play that set the level's best time, or None (no verified human solve yet, or its
+        file is gone)."""
         check_id(level_id)
         with self.store._read() as conn:
             rows = _best_rows(conn, level_id)
-            best = _best_seconds(conn, level_id)
         for row in rows:
-            if best is not None and row.seconds > best + 1e-9:  # the best time's play has no recording
+            if row.seconds > rows[0].seconds + 1e-9:  # a slower run is not the best time's
                 return None
             path = self.directory / row.recording_path
             if path.is_file():
                 return path
         return None
 
-    def offer(self, level_id: str, source: Path, steps: int, seconds: float) -> str | None:
-        """Copy a finished human solve's recording into the gallery if it beats the level's kept best run;
-        returns the file name to store with the play (`record_play(recording_path=...)`), or None."""
+    def offer(self, level_id: str, source: Path | None, steps: int, seconds: float,
+              player: str = "human") -> str | None:
+        """If a finished human solve beats the level's best time and its recording `source` proves it
+        (server.gallery.proof), copy the recording into the gallery and return the file name to store with the
+        play (`record_play(recording_path=...)`): that play then is the best time and the best run. Else None
+        (the reason logged). Re-simulates, so call it off the play thread."""
         with self.store._read() as conn:
             rows = _best_rows(conn, level_id)
         if rows and (rows[0].seconds, rows[0].steps) <= (seconds, steps):
+            return None
+        try:
+            document = self.store.get_level(level_id)["level"]
+        except StoreError as error:  # e.g. deleted meanwhile
+            log.warning("play on %s sets no best time: %s", level_id, error)
             return None
         name = f"{PREFIX}{level_id}-{secrets.token_hex(6)}.mcap"
         target = self.directory / name
         partial = self.directory / f".{name}.copy.part"  # hidden and swept like the Recorder's partial files
         try:
-            shutil.copyfile(source, partial)
+            if source is not None:  # the proof reads the copy: the kept bytes are the verified bytes
+                shutil.copyfile(source, partial)
+            reason = why_not_a_record(None if source is None else partial, level_id=level_id, player=player,
+                                      steps=steps, seconds=seconds, level_document=document)
+            if reason is not None:
+                log.warning("play on %s (%d steps, %.3f s) sets no best time: %s", level_id, steps, seconds, reason)
+                partial.unlink(missing_ok=True)
+                return None
             os.replace(partial, target)
         except OSError as error:
             partial.unlink(missing_ok=True)
@@ -125,13 +136,20 @@ class BestRuns:
     def candidate(self, recorder, session, result: str, steps: int, seconds: float,
                   player: str = "human") -> str | None:
         """For a finished play of a gallery level: the best-run file name to record with it, if this play is a
-        human solve whose recording (server.recorder.PlayRecorder) beats the kept best run; else None. `player`:
+        human solve that beats the kept best run and whose recording (server.recorder.PlayRecorder) proves it
+        (`offer`); else None. `player`:
         the recording's player ("human", or "race" for the human's side of a race, which is the session's play).
         Waits for the recording to be finished, so call it off the play thread (on_play_end runs on its own)."""
-        if result != "solved" or recorder is None:
+        if result != "solved":
+            return None
+        if recorder is None:  # kinetix serve --no-record: said once, not once per solve
+            if not self._said_unrecorded:
+                self._said_unrecorded = True
+                log.warning("plays are not recorded (--no-record), so no play sets a best time")
             return None
         finished = recorder.last_finished(session)
-        if (finished is None or finished.path is None or finished.player != player or finished.result != "solved"
-                or finished.level_id != session.gallery_id or finished.steps != steps):
-            return None
-        return self.offer(session.gallery_id, finished.path, steps, seconds)
+        path = finished.path if finished is not None else None
+        if finished is not None and (finished.player != player or finished.result != "solved"
+                                     or finished.level_id != session.gallery_id or finished.steps != steps):
+            path = None  # the session's last recording is another play's
+        return self.offer(session.gallery_id, path, steps, seconds, player)

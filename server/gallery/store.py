@@ -511,6 +511,7 @@ class Store:
     def _stats_subqueries(level_id: str | None = None):
         human = plays_t.c.kind == "human"
         agent = plays_t.c.kind == "agent"
+        record = and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None))
         plays = (select(
             plays_t.c.level_id,
             func.count().label("plays"),
@@ -518,14 +519,11 @@ class Store:
             func.count().filter(and_(human, plays_t.c.solved)).label("human_solved"),
             func.count().filter(agent).label("agent_plays"),
             func.count().filter(and_(agent, plays_t.c.solved)).label("agent_solved"),
-            func.min(case((and_(human, plays_t.c.solved), plays_t.c.seconds))).label("best_human_seconds"),
-            func.min(case((and_(human, plays_t.c.solved), plays_t.c.steps))).label("best_human_steps"),
-            # server.gallery.runs keeps the recording of the best recorded human solve only; it is the level's best
-            # run when no faster solve went unrecorded (then the best time has no run to show: has_best_run false)
-            func.count().filter(and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None)))
-            .label("best_runs"),
-            func.min(case((and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None)), plays_t.c.seconds)))
-            .label("best_run_seconds"),
+            # Best times come only from records: human solves whose recording server.gallery.runs verified by
+            # replay and kept (recording_path set; it keeps the best one's only, the best time's play).
+            func.min(case((record, plays_t.c.seconds))).label("best_human_seconds"),
+            func.min(case((record, plays_t.c.steps))).label("best_human_steps"),
+            func.count().filter(record).label("best_runs"),
         ).where(plays_t.c.level_id == level_id if level_id else True).group_by(plays_t.c.level_id).subquery("p"))
         votes = (select(
             votes_t.c.level_id,
@@ -552,7 +550,7 @@ class Store:
                    n(p.c.plays).label("plays"), human_plays.label("human_plays"), human_solved.label("human_solved"),
                    n(p.c.agent_plays).label("agent_plays"), n(p.c.agent_solved).label("agent_solved"),
                    p.c.best_human_seconds, p.c.best_human_steps, n(v.c.up).label("up"), n(v.c.down).label("down"),
-                   n(p.c.best_runs).label("best_runs"), p.c.best_run_seconds]
+                   n(p.c.best_runs).label("best_runs")]
         base = (select(*columns).select_from(levels_t.outerjoin(p, p.c.level_id == levels_t.c.id)
                                              .outerjoin(v, v.c.level_id == levels_t.c.id)))
         return base, keys
@@ -579,7 +577,7 @@ class Store:
                 "agent_solve_rate": rate(row.agent_solved, row.agent_plays),
                 "best_human_seconds": row.best_human_seconds,
                 "best_human_steps": None if row.best_human_steps is None else int(row.best_human_steps),
-                "has_best_run": int(row.best_runs) > 0 and row.best_run_seconds <= row.best_human_seconds + 1e-9,
+                "has_best_run": int(row.best_runs) > 0,
                 "votes_up": int(row.up), "votes_down": int(row.down), "score": int(row.up) - int(row.down),
             },
         }

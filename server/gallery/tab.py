@@ -7,7 +7,8 @@
   control key); the page's query reaches Python through the /keys hello;
 - every finished play of a level that is in the gallery is recorded (solved, steps, seconds of simulated time, so
   pauses and a slow machine do not change a player's time), as kind "agent" when an agent played it; with the
-  server's PlayRecorder, a human solve that beats the level's best keeps its recording (server.gallery.runs);
+  server's PlayRecorder, a human solve that beats the level's best and whose recording verifies by replay sets
+  the best time and keeps its recording (server.gallery.runs; without one it sets no best time);
 - `/?level=<id>&mode=replay` replays the level's best run (server.replay).
 
 A save made while editing a gallery level is a remix: it keeps that level as its parent. The author token comes

@@ -25,7 +25,8 @@ from server.editor.properties import COLLISION_MODES
 TOOL_LABELS = {"select": "Select", "circle": "Circle", "rectangle": "Rect", "triangle": "Triangle",
                "polygon": "Polygon", "revolute": "Hinge", "fixed": "Weld", "thruster": "Thruster"}
 TOOL_OF_LABEL = {label: tool for tool, label in TOOL_LABELS.items()}
-MOTOR_BINDINGS = ("0: Left/Right", "1: Up/Down", "2: W/S", "3: A/D")
+# Named by effect, as the play legend names them: the second key of each pair turns the wheel clockwise.
+MOTOR_BINDINGS = ("0: ← / → clockwise", "1: ↑ / ↓ clockwise", "2: W / S clockwise", "3: A / D clockwise")
 THRUSTER_BINDINGS = ("0: key 1", "1: key 2")
 
 

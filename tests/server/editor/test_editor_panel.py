@@ -77,7 +77,7 @@ def test_joint_and_thruster_widgets(setup):
     panel.motor_on.value = True
     panel.motor_speed.value = 2.0
     panel.motor_power.value = 3.0
-    panel.motor_binding.value = "3: A/D"
+    panel.motor_binding.value = "3: A / D clockwise"
     panel.motor_auto.value = True
     panel.limits_on.value = True
     panel.limit_min.value = -10.0

@@ -1,20 +1,23 @@
 # `make serve` and `make test` work on a fresh machine: both first build .venv (Python 3.11+ as python3)
 # and install the project into it; the stamp re-installs only when pyproject.toml changes.
+# ARGS goes to the command: `make serve ARGS="--port 9000"`, `make test ARGS="tests/kinetix"`,
+# `make bench ARGS="--sizes s"`.
 PYTHON ?= python3
+ARGS ?=
 VENV := .venv
 STAMP := $(VENV)/.installed.stamp
 
 .PHONY: serve test bench venv
 
 serve: $(STAMP)
-	$(VENV)/bin/kinetix serve
+	$(VENV)/bin/kinetix serve $(ARGS)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/pytest
+	$(VENV)/bin/pytest $(ARGS)
 
 bench: $(STAMP)
-	$(VENV)/bin/kinetix bench engine
+	$(VENV)/bin/kinetix bench engine $(ARGS)
 
 venv: $(STAMP)
 

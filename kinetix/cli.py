@@ -125,6 +125,16 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
     parser.add_argument("--no-record", dest="record", action="store_false",
                         help="do not record plays (default: every play is recorded to <data>/recordings)")
+    # Web safety (server/web_security.py, server/gallery/limits.py); None keeps the server's defaults.
+    parser.add_argument("--allowed-hosts", type=comma_list(str), default=[], metavar="NAMES",
+                        help="host names or addresses clients may use in the URL besides the --host address, "
+                             "localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS rebinding)")
+    parser.add_argument("--write-limit", type=float, default=None, metavar="N",
+                        help="gallery writes (save, change, delete, vote) per minute per client address; 0 = no "
+                             "limit (default: 60)")
+    parser.add_argument("--identity-limit", type=float, default=None, metavar="N",
+                        help="new gallery author or voter identities per hour per client address; 0 = no limit "
+                             "(default: 10)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from kinetix.formats import describe, kinetix_json
 from kinetix.level import LevelError
 from kinetix.levels import load_level, resize, save_level
 
@@ -21,6 +22,9 @@ def convert(source: str, target: str, to: str | None = None, size: str | None = 
     save_level(file, target, format=fmt)
     for warning in file.warnings:
         print(f"{source}: warning: {warning}", file=sys.stderr)
+    if fmt == "kinetix":  # what the public Kinetix will do differently with the file
+        for note in kinetix_json.export_notes(describe(file.level, file.params, file.name)):
+            print(f"{target}: note: {note}", file=sys.stderr)
     return fmt
 
 

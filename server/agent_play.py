@@ -29,7 +29,6 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from server import draw
-from server.play import action_from_keys
 from server.session import Controller, episode_end
 
 log = logging.getLogger(__name__)
@@ -160,24 +159,32 @@ def action_text(action: np.ndarray) -> str:
     return f"{motors} {thrusters}"
 
 
+def overlay_rows(action: np.ndarray, value: float, title: str, scene: draw.Scene | None) -> list[tuple[str, tuple]]:
+    """The overlay's rows (text, colour): the title, the action of each binding the level has (its active motors'
+    and thrusters'; every binding when the scene is not known), and the value estimate."""
+    motors, thrusters = draw.used_bindings(scene) if scene is not None else (set(range(4)), set(range(2)))
+    rows = [(title, (20, 20, 20))]
+    rows += [(f"motor {b}: {MOTOR_SYMBOL.get(int(action[b]), '?')}", draw.MOTOR_COLOURS[b]) for b in sorted(motors)]
+    rows += [(f"thruster {b}: {'on' if action[4 + b] else 'off'}", draw.THRUSTER_COLOURS[b])
+             for b in sorted(thrusters)]
+    return rows + [(f"value {value:+.3f}", (20, 20, 20))]
+
+
 def _overlay_box(frame: np.ndarray, runner: AgentRunner, title: str, view: draw.View | None = None,
-                 left: int = 6) -> np.ndarray:
-    """Draw the agent's action per binding (in the bindings' colours) and its value estimate near the top of the
-    level's area, `left` pixels in (past the key legend), where levels are mostly sky; not on the right, which the
-    browser's control panel covers."""
+                 scene: draw.Scene | None = None, under_legend: bool = False) -> np.ndarray:
+    """Draw the agent's action per binding of the level (in the bindings' colours) and its value estimate at the
+    top left of the level's area, under the HUD line (and under the key legend when the frame has one), where levels
+    are mostly sky; not on the right, which the browser's control panel covers."""
     if runner.action is None or runner.action.shape[0] != 6:
         return frame
     image = Image.fromarray(frame)
     pen = ImageDraw.Draw(image)
     font = draw._font(12)
-    rows = [(title, (20, 20, 20))]
-    rows += [(f"motor {b}: {MOTOR_SYMBOL.get(int(runner.action[b]), '?')}", draw.MOTOR_COLOURS[b]) for b in range(4)]
-    rows += [(f"thruster {b}: {'on' if runner.action[4 + b] else 'off'}", draw.THRUSTER_COLOURS[b])
-             for b in range(2)]
-    rows.append((f"value {runner.value:+.3f}", (20, 20, 20)))
+    rows = overlay_rows(runner.action, runner.value, title, scene)
     width, height = 140, 14 * len(rows) + 8
     ox, oy = view.origin if view is not None else (0.0, 0.0)
-    x0, y0 = int(ox) + left, int(oy) + 22  # under the HUD line
+    legend_rows = sum(map(len, draw.used_bindings(scene))) if under_legend and scene is not None else 0
+    x0, y0 = int(ox) + 6, int(oy) + draw.TEXT_TOP + draw.LEGEND_ROW * legend_rows + (4 if legend_rows else 0)
     if x0 + width > image.width or y0 + height > image.height:
         return frame
     pen.rectangle([x0, y0, x0 + width, y0 + height], fill=(255, 255, 255), outline=(60, 60, 60))
@@ -214,7 +221,8 @@ class AgentController(Controller):
         self._scene = draw.scene_of(state.level, static_from=self._scene)
         banner = banner.replace("You won!", "The agent solved it!").replace("You lost.", "The agent failed.")
         frame = draw.draw_frame(self._scene, view, hud=session.hud(), banner=banner)
-        return _overlay_box(frame, self.runner, f"agent {self.runner.label}"[:20], view, left=190)
+        return _overlay_box(frame, self.runner, f"agent {self.runner.label}"[:20], view, scene=self._scene,
+                            under_legend=True)
 
 
 @dataclasses.dataclass
@@ -269,7 +277,7 @@ class RaceController(Controller):
                 self.runner.prefetch(self.agent.state)
         if self.human.result is not None:  # the human's episode ended: its side stays as it was
             return np.zeros(6, np.int32)
-        return action_from_keys(self.session.held)
+        return self.session.keys_action()
 
     def episode_end(self, state, result) -> str | None:
         if self.human.result is None:
@@ -301,12 +309,14 @@ class RaceController(Controller):
             end = "" if side.result is None else f"{draw_result(side.result)}\n{side.seconds:.2f} s"
             frame = draw.draw_frame(side.scene, half, hud=text, banner=end, legend=side is self.human)
             if side is self.agent:
-                frame = _overlay_box(frame, self.runner, "agent", half)
+                frame = _overlay_box(frame, self.runner, "agent", half, scene=side.scene)
             halves.append(frame)
         divider = np.full((view.height, view.width - 2 * half.width, 3), 60, np.uint8)
         frame = np.concatenate([halves[0], divider, halves[1]], axis=1)
         if self.winner is not None:
             frame = _winner_banner(frame, WINNER_TEXT[self.winner])
+        elif session.mode == "ready":  # the race waits for the human's first key (session.START_HINT)
+            frame = _winner_banner(frame, banner)
         return frame
 
 

@@ -19,7 +19,9 @@ Specialists and runs belong to someone (issue 26; docs/agents.md, "Training belo
   and round-robin queue (server.training) use it.
 
 Plays: Watch agent plays are recorded by the gallery link (kind "agent", the session's player is
-"agent:<name>"). A race records both of its plays itself when it is decided (kind "human" and kind "agent").
+"agent:<name>"). A race records both of its plays itself when it is decided (kind "human" and kind "agent"); the
+human's side is the session's own play, recorded to MCAP like any other (player "race"), so a race won by the
+human keeps its recording as the level's best run when it sets the best time (server.gallery.runs).
 """
 
 from __future__ import annotations
@@ -55,10 +57,13 @@ CURVE_SIZE = (300, 130)
 
 class AgentLink:
     def __init__(self, *, store=None, agents_dir: str | Path, pool: TrainingPool | None = None,
-                 train_steps: int = DEFAULT_TRAIN_STEPS, train_options: dict | None = None):
+                 train_steps: int = DEFAULT_TRAIN_STEPS, train_options: dict | None = None, recorder=None):
         from server.gallery.agents import LevelAgents
+        from server.gallery.runs import BestRuns
 
         self.store = store
+        self.recorder = recorder  # server.recorder.PlayRecorder: a race's human solve keeps its recording
+        self.runs = BestRuns(store) if store is not None and store.recordings_dir is not None else None
         self.agents_dir = Path(agents_dir)
         self.level_agents = LevelAgents(store, self.agents_dir) if store is not None else None
         self.pool = pool
@@ -233,8 +238,9 @@ class AgentLink:
         state, params = stepper.start(level_file)
         race = RaceController(session, runner, stepper, state, params, on_finish=self._race_finished)
         race.gallery_id = session.gallery_id
-        session.play(controller=race)
-        self._say(session, f"Racing **{html.escape(runner.label)}**: you play the left half. First to solve wins.")
+        session.play(controller=race, wait=True)  # both sides start with the human's first key
+        self._say(session, f"Racing **{html.escape(runner.label)}**: you play the left half. First to solve wins. "
+                           "Press Space or an arrow key to start.")
         return race
 
     def _race_finished(self, race: RaceController) -> None:
@@ -253,11 +259,28 @@ class AgentLink:
         # Both plays are recorded; a side still playing when the other solved lost the race: recorded unsolved,
         # with the steps it had played.
         for side, kind in ((race.human, "human"), (race.agent, "agent")):
+            best = self._race_best_run(race) if kind == "human" else None
             try:
                 self.store.record_play(race.gallery_id, kind, solved=side.solved, steps=int(side.steps),
-                                       seconds=float(side.seconds))
+                                       seconds=float(side.seconds), recording_path=best)
             except Exception as error:  # a lost statistic is not worth a crash (e.g. the level was deleted)
                 log.warning("race play not recorded for %s: %s", race.gallery_id, error)
+                if best is not None:
+                    self.runs.discard(best)
+                continue
+            if best is not None:
+                self.runs.prune(race.gallery_id)  # the previous best run's file goes
+
+    def _race_best_run(self, race: RaceController) -> str | None:
+        """The best-run file of the human's side if it solved and beat the kept best run (else None), so the best
+        time a race sets comes with its recording."""
+        if self.runs is None or not race.human.solved:
+            return None
+        session = race.session
+        with session.lock:  # the play thread decided the race holding it; past it, the recorder has the play ended
+            pass
+        return self.runs.candidate(self.recorder, session, "solved", int(race.human.steps),
+                                   float(race.human.seconds), player=RaceController.player)
 
     # ------------------------------------------------------------------ query (?level=<id>&mode=agent)
 

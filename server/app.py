@@ -49,6 +49,9 @@ class Config:
     train_steps: int = 100_000  # the default of a tab's "Training steps"
     train_options: dict = dataclasses.field(default_factory=dict)  # e.g. {"config": {"num_envs": 8}} (tests)
     train_worker: object = None  # the training worker function (tests swap in a cheap one); default train_worker
+    allowed_hosts: tuple[str, ...] = ()  # host names besides `host`, localhost and 127.0.0.1 (server.web_security)
+    write_limit: float | None = None  # gallery writes per minute per client; None: RateLimits' default, 0: off
+    identity_limit: float | None = None  # new gallery identities per hour per client; None: default, 0: off
 
 
 class App:
@@ -84,6 +87,7 @@ class App:
         from server.http import create_app
         from server.memory import keep_frame_buffers_resident
         from server.session import SessionManager
+        from server.web_security import allowed_hosts_for
 
         if self.config.max_sessions < 1:
             raise ValueError(f"--max-sessions must be at least 1, got {self.config.max_sessions}")
@@ -139,7 +143,8 @@ class App:
         router = self._gallery_router()
         if self.recorder is None:
             self._start_recordings()
-        app = create_app(self.manager, self.viser.get_port(), gallery_router=router)
+        app = create_app(self.manager, self.viser.get_port(), gallery_router=router,
+                         allowed_hosts=allowed_hosts_for(self.config.host, self.config.allowed_hosts))
         self._attach_agents()
         config = uvicorn.Config(app, log_level="warning", lifespan="off", ws_max_size=1 << 16)
         self._uvicorn = uvicorn.Server(config)
@@ -168,6 +173,7 @@ class App:
         if not self.config.gallery:
             return None
         from server.gallery.api import make_router
+        from server.gallery.limits import RateLimits
         from server.gallery.store import open_store
         from server.gallery.tab import GalleryLink
 
@@ -177,7 +183,9 @@ class App:
         link.attach(self.manager)
         if link.runs is not None:
             link.runs.remove_orphans()
-        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"))
+        given = {"writes_per_minute": self.config.write_limit, "identities_per_hour": self.config.identity_limit}
+        limits = RateLimits(**{name: value for name, value in given.items() if value is not None})
+        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits)
 
     def _start_recordings(self) -> None:
         """Record every play (server.recorder) into the gallery's recordings folder, else <data>/recordings, and
@@ -208,7 +216,8 @@ class App:
                                      per_client=self.config.max_training_per_client)
         data_dir = Path(self.config.data) if self.config.data else default_data_dir()
         self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,
-                                train_steps=self.config.train_steps, train_options=self.config.train_options)
+                                train_steps=self.config.train_steps, train_options=self.config.train_options,
+                                recorder=self.recorder if self.config.record else None)
         self.agents.attach(self.manager)
 
     def stop(self) -> None:
@@ -246,7 +255,10 @@ def serve(args) -> int:
                     warm_sizes=tuple(size for size in getattr(args, "warm", ["s", "m", "l"]) if size != "none"),
                     record=getattr(args, "record", True), max_training_runs=getattr(args, "max_training_runs", 1),
                     max_training_queue=getattr(args, "max_training_queue", 8),
-                    max_training_per_client=getattr(args, "max_training_per_client", 1))
+                    max_training_per_client=getattr(args, "max_training_per_client", 1),
+                    allowed_hosts=tuple(getattr(args, "allowed_hosts", ())),
+                    write_limit=getattr(args, "write_limit", None),
+                    identity_limit=getattr(args, "identity_limit", None))
     print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()

@@ -57,7 +57,9 @@ def _latency(app, chromium: str, samples: int) -> tuple[list[float], float]:
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--use-gl=swiftshader"])
         # The control panel (about 390 px) is docked beside the canvas: this leaves a canvas of about 640x480.
-        page = browser.new_page(viewport={"width": 1030, "height": 480})
+        # bypass_csp: wait_for_function evaluates its predicate with eval in the page, which the server's
+        # Content-Security-Policy refuses (server/web_security.py); the page and its frames are the same.
+        page = browser.new_page(viewport={"width": 1030, "height": 480}, bypass_csp=True)
         page.goto(app.url)
         page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
         page.evaluate(DRAWN_SCRIPT)

@@ -31,7 +31,9 @@ MOTOR_COLOURS = [(255, 200, 0), (230, 0, 230), (0, 200, 210), (255, 120, 0)]  # 
 THRUSTER_COLOURS = [(255, 69, 0), (148, 0, 211)]  # thruster bindings 0-1
 JOINT_OFF = (255, 255, 255)
 WELD = (100, 100, 100)
-MOTOR_KEYS = ["Left/Right", "Up/Down", "W/S", "A/D"]  # which keys drive motor binding i
+# The keys of motor binding i: (turns its wheel clockwise, anticlockwise) as server.play maps them. Arrow keys are
+# drawn as small arrows (Pillow's bundled font has no arrow glyphs); the characters name them in legend_text.
+MOTOR_KEYS = [("→", "←"), ("↓", "↑"), ("S", "W"), ("D", "A")]
 THRUSTER_KEYS = ["1", "2"]
 PREVIEW = (255, 140, 0)
 SELECTION = (0, 150, 255)
@@ -280,9 +282,30 @@ def _joint_thruster_ops(scene: Scene, px, s: float, outline: int, used_motor: se
     return ops
 
 
-def _legend(motors: set[int], thrusters: set[int]) -> list[tuple[str, tuple[int, int, int]]]:
-    rows = [(f"motor {b}: {MOTOR_KEYS[b]}", MOTOR_COLOURS[b]) for b in sorted(motors)]
-    return rows + [(f"thruster {b}: key {THRUSTER_KEYS[b]}", THRUSTER_COLOURS[b]) for b in sorted(thrusters)]
+def used_bindings(scene: Scene) -> tuple[set[int], set[int]]:
+    """(motor bindings, thruster bindings) the scene's active motors and thrusters listen to: the level's controls."""
+    motors = scene.joint_active & ~scene.joint_fixed & scene.motor_on
+    motor = {int(np.clip(b, 0, 3)) for b in scene.motor_binding[motors]}
+    thruster = {int(np.clip(b, 0, 1)) for b in scene.thruster_binding[scene.thruster_active]}
+    return motor, thruster
+
+
+def _legend(motors: set[int], thrusters: set[int]) -> list[tuple[list[tuple[str, str]], tuple[int, int, int]]]:
+    """Legend rows (segments, binding colour); a segment is ("key", key name) or ("text", words). Keys are named by
+    their effect: "→ motor 0 clockwise  ← anticlockwise"."""
+    rows = []
+    for b in sorted(motors):
+        clockwise, anticlockwise = MOTOR_KEYS[b]
+        rows.append(([("key", clockwise), ("text", f"motor {b} clockwise"), ("key", anticlockwise),
+                      ("text", "anticlockwise")], MOTOR_COLOURS[b]))
+    return rows + [([("key", THRUSTER_KEYS[b]), ("text", f"thruster {b} fires")], THRUSTER_COLOURS[b])
+                   for b in sorted(thrusters)]
+
+
+def legend_text(motors: set[int], thrusters: set[int]) -> list[str]:
+    """The legend's rows as plain text, e.g. ["→ motor 0 clockwise  ← anticlockwise", "1 thruster 0 fires"]."""
+    return ["  ".join(f"{name} {words}" for (_, name), (_, words) in zip(segments[::2], segments[1::2], strict=True))
+            for segments, _ in _legend(motors, thrusters)]
 
 
 def _overlay_ops(overlay, px, s: float) -> list:
@@ -345,9 +368,14 @@ def _draw_text(image: Image.Image, view: View, *, hud: str, banner: str, message
     if hud:
         _hud_text(image, (ox + 6, oy + 4), hud)
     y = oy + TEXT_TOP
-    for text, colour in legend:
+    for segments, colour in legend:
         draw.rectangle([ox + 6, y + 2, ox + 16, y + 12], fill=colour, outline=OUTLINE)
-        _text(image, (ox + 20, y), text, TEXT, 13)
+        x = ox + 20
+        for kind, text in segments:
+            if kind == "key":
+                x += _key_cap(draw, image, x, y, text) + 4
+            else:
+                x += _text(image, (x, y), text, TEXT, 13) + 10
         y += LEGEND_ROW
     if message:
         _text(image, (ox + 6, view.height - view.origin[1] - 20 - top), message, (200, 0, 0), 13)
@@ -360,6 +388,27 @@ def _draw_text(image: Image.Image, view: View, *, hud: str, banner: str, message
         for n, line in enumerate(lines):
             w = draw.textlength(line, font=big)
             _text(image, (view.width / 2 - w / 2, box_top + 8 + 28 * n), line, (20, 20, 20), 22)
+
+
+_ARROWS = {"→": 0.0, "↑": 90.0, "←": 180.0, "↓": 270.0}  # key name -> direction the drawn arrow points (degrees)
+KEY_CAP = 13  # pixels: the side of a key cap in the legend
+
+
+def _key_cap(draw: ImageDraw.ImageDraw, image: Image.Image, x: float, y: float, name: str) -> int:
+    """A key cap at (x, y): a small box with an arrow or the key's letter; returns its width in pixels."""
+    x, y = int(x), int(y)
+    width = KEY_CAP if name in _ARROWS else max(KEY_CAP, math.ceil(_font(12).getlength(name)) + 5)
+    draw.rounded_rectangle([x, y, x + width, y + KEY_CAP], radius=3, fill=(255, 255, 255), outline=OUTLINE)
+    if name in _ARROWS:
+        angle = math.radians(_ARROWS[name])
+        c, s = math.cos(angle), -math.sin(angle)  # screen y grows downwards
+        cx, cy = x + KEY_CAP / 2, y + KEY_CAP / 2
+        at = lambda u, v: (cx + u * c - v * s, cy + u * s + v * c)  # noqa: E731  (arrow frame -> pixels)
+        draw.line([at(-4, 0), at(1, 0)], fill=TEXT, width=2)
+        draw.polygon([at(4.5, 0), at(0, -3.5), at(0, 3.5)], fill=TEXT)
+    else:
+        _text(image, (x + 3, y), name, TEXT, 12)
+    return width
 
 
 HUD_GAP = 12  # pixels between the HUD's fields

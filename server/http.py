@@ -22,6 +22,8 @@ from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, PlainTextResponse
 from fastapi.staticfiles import StaticFiles
 
+from server.web_security import LOCAL_HOSTS, WebSecurity
+
 log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
@@ -38,7 +40,8 @@ def viser_index_html() -> str:
 def inject(page: str, viser_port: int) -> str:
     """The viser page with our configuration, frame display and key script right after <head>."""
     snippet = (f"<script>window.__KINETIX__ = {json.dumps({'viserPort': viser_port})};</script>"
-               '<script src="/static/frames.js"></script><script src="/static/keys.js"></script>')
+               '<script src="/static/frames.js"></script><script src="/static/keys.js"></script>'
+               '<script src="/static/labels.js"></script>')  # ties viser's labels to their inputs
     head = page.find("<head>")
     if head < 0:
         raise ValueError("viser's index.html has no <head>; cannot inject the key script")
@@ -46,9 +49,11 @@ def inject(page: str, viser_port: int) -> str:
 
 
 def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
-               gallery_router: APIRouter | None = None) -> FastAPI:
-    """The side server's app. `manager` is a server.session.SessionManager (it maps nonces to sessions)."""
+               gallery_router: APIRouter | None = None, allowed_hosts=LOCAL_HOSTS) -> FastAPI:
+    """The side server's app. `manager` is a server.session.SessionManager (it maps nonces to sessions).
+    Requests must name one of `allowed_hosts` (server.web_security: Host/Origin checks, security headers)."""
     app = FastAPI(title="Kinetix playground", docs_url="/docs", openapi_url="/openapi.json")
+    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)
     page = inject(viser_index_html(), viser_port)
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)

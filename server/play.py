@@ -4,8 +4,12 @@
     state, params = stepper.start(level_file)
     state, result = stepper.step(state, action_from_keys({"ArrowRight"}), params)
 
-Keys (CONTRACT section 4): Left/Right drive motor binding 0 (+1/-1), Up/Down binding 1, W/S binding 2,
-A/D binding 3; keys 1 and 2 fire thruster bindings 0 and 1 while held. Opposite keys held together cancel.
+Keys: Left/Right drive motor binding 0, Up/Down binding 1, W/S binding 2, A/D binding 3; keys 1 and 2 fire
+thruster bindings 0 and 1 while held. Opposite keys held together cancel. One rule on every level: the second key
+of a pair (Right, Down, S, D) turns the binding's wheel clockwise, so Right makes a car roll right; the first
+anticlockwise. Which binding value that is depends on the level's joints (kinetix.bindings.clockwise_values), so
+pass `clockwise_values(level)` as `clockwise`; without it the second key gives -1 (the value that turns a wheel
+clockwise when it is the joint's body b, as in the public Kinetix levels).
 """
 
 from __future__ import annotations
@@ -17,13 +21,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-# key code -> (motor binding, multi-discrete value): 1 drives the motor at +1, 2 at -1.
+# key code -> (motor binding, turn): +1 turns the binding's wheel clockwise, -1 anticlockwise.
 MOTOR_KEYS: dict[str, tuple[int, int]] = {
-    "ArrowLeft": (0, 1), "ArrowRight": (0, 2),
-    "ArrowUp": (1, 1), "ArrowDown": (1, 2),
-    "KeyW": (2, 1), "KeyS": (2, 2),
-    "KeyA": (3, 1), "KeyD": (3, 2),
+    "ArrowLeft": (0, -1), "ArrowRight": (0, 1),
+    "ArrowUp": (1, -1), "ArrowDown": (1, 1),
+    "KeyW": (2, -1), "KeyS": (2, 1),
+    "KeyA": (3, -1), "KeyD": (3, 1),
 }
+DEFAULT_CLOCKWISE = np.full(4, -1, np.int32)  # the binding values that turn clockwise when the level is not known
 THRUSTER_KEYS: dict[str, int] = {"Digit1": 0, "Digit2": 1, "Numpad1": 0, "Numpad2": 1}
 PLAY_KEYS = frozenset(MOTOR_KEYS) | frozenset(THRUSTER_KEYS)
 # Batched steps are compiled for these batch sizes; a batch is padded up to the next one (a larger batch is
@@ -36,13 +41,19 @@ MIN_BATCH = 3  # fewer plays step one by one: padding 2 plays to 8 costs more th
 log = logging.getLogger(__name__)
 
 
-def action_from_keys(held: set[str] | frozenset[str]) -> np.ndarray:
-    """The multi-discrete action (4 motor bindings in {0, 1, 2}, 2 thruster bindings in {0, 1}) for held keys."""
+def action_from_keys(held: set[str] | frozenset[str], clockwise=None) -> np.ndarray:
+    """The multi-discrete action (4 motor bindings in {0, 1, 2}, 2 thruster bindings in {0, 1}) for held keys.
+
+    `clockwise`: per motor binding, the binding value (+1 or -1) that turns its wheel clockwise
+    (kinetix.bindings.clockwise_values of the level played); default DEFAULT_CLOCKWISE.
+    """
+    clockwise = DEFAULT_CLOCKWISE if clockwise is None else clockwise
     action = np.zeros(6, np.int32)
     for binding in range(4):
-        values = {value for code, (b, value) in MOTOR_KEYS.items() if b == binding and code in held}
-        if len(values) == 1:  # both directions held cancel out
-            action[binding] = values.pop()
+        turns = {turn for code, (b, turn) in MOTOR_KEYS.items() if b == binding and code in held}
+        if len(turns) == 1:  # both directions held cancel out
+            value = turns.pop() * int(clockwise[binding])
+            action[binding] = 1 if value > 0 else 2  # multi-discrete: 1 drives at +1, 2 at -1
     for code, binding in THRUSTER_KEYS.items():
         if code in held:
             action[4 + binding] = 1

@@ -9,8 +9,11 @@
 A `Replay` puts the session in mode "replay" (no editing, no play) and draws, with server.draw, the scene of
 kinetix.recording.recorded_level(recording, step): the recorded states, no re-simulation (and no JAX call per
 frame: Replay.scene_at sets the recorded positions and angles in numpy), so scrubbing to any step is immediate.
-Its timeline ("Replay" folder): Play/Pause, a "Replay step" slider (scrub), Speed, Close replay. Space, Esc,
-Play or Close replay leave it. A thread per replay advances the step at the recorded pace times the speed.
+Its timeline ("Replay" folder, at the top of the panel while a replay is open): Play/Pause, a "Replay step"
+slider (scrub), Speed, Close replay. The slider counts steps done, 0 (the start) to N (after the last of N
+steps), as the HUD's "step k/N" does. ←/→ step back and forward (Shift: 10 steps), pausing the replay; they work
+with the slider focused or not (keys reach the session through keys.js). Space, Esc, Play or Close replay leave
+it. A thread per replay advances the step at the recorded pace times the speed.
 
 `open_best_run(session, path, title)` is what `/?level=<id>&mode=replay` calls (server.gallery.tab).
 """
@@ -37,6 +40,9 @@ FRAME_S = 1.0 / 30  # the replay pushes at most 30 frames a second
 PAUSED_LOOK_S = 0.25  # while paused, how often the thread looks for a resized canvas
 SLIDER_EVERY_S = 0.1  # while playing, the slider follows at this pace (each move is a message to the tab)
 RESULT_TEXT = {"solved": "Solved", "failed": "Failed", "truncated": "Time is up", "nan": "The simulation broke"}
+STEP_KEYS = {"ArrowLeft": -1, "ArrowRight": 1}  # key code -> steps; Shift makes it SHIFT_STEPS steps
+SHIFT_STEPS = 10
+TIMELINE_ORDER = -1.0  # viser orders panel items by this (its default counter starts at 1): the timeline comes first
 
 
 def step_seconds(recording: Recording) -> float:
@@ -123,6 +129,21 @@ class Replay:
             self.position = float(min(max(int(step), -1), self.last))
             self._dirty = True
         self._wake.set()
+
+    def step_by(self, steps: int) -> None:
+        """Pause and move `steps` steps back (negative) or forward from the step shown, within the recording."""
+        with self._lock:
+            self.playing = False
+            self.position = float(min(max(math.floor(self.position) + int(steps), -1), self.last))
+            self._dirty = True
+        self._wake.set()
+
+    def on_key(self, code: str, shift: bool = False) -> bool:
+        """A keydown in the replaying tab (Session.key_event): ←/→ step; True if the key was used."""
+        if code not in STEP_KEYS:
+            return False
+        self.step_by(STEP_KEYS[code] * (SHIFT_STEPS if shift else 1))
+        return True
 
     def set_speed(self, speed: float) -> None:
         with self._lock:
@@ -213,10 +234,13 @@ class SessionPanel:
             self.replay_last_button = gui.add_button("Replay last play")
             self.upload = gui.add_upload_button("Replay a file (.mcap)", mime_type=".mcap,application/octet-stream")
             self.status = gui.add_markdown("")
-        with gui.add_folder("Replay", visible=False) as self.timeline:
+        # Made visible (and opened) when a replay starts; at the top, not below the editor's long panel.
+        with gui.add_folder("Replay", visible=False, order=TIMELINE_ORDER) as self.timeline:
             self.title = gui.add_markdown("")
             self.play_button = gui.add_button("Play replay")
-            self.slider = gui.add_slider("Replay step", min=-1, max=1, step=1, initial_value=-1)
+            # Steps done: 0 is the start, N the end of an N-step recording (Replay.step + 1).
+            self.slider = gui.add_slider("Replay step", min=0, max=1, step=1, initial_value=0,
+                                         hint="←/→ step back/forward (Shift: 10 steps)")
             self.speed = gui.add_dropdown("Speed", options=list(SPEEDS), initial_value="1x")
             self.close_button = gui.add_button("Close replay")
         self.download_button.on_click(lambda _: self.download())
@@ -284,7 +308,7 @@ class SessionPanel:
         self.replay = replay
         self.title.content = (f"**{html.escape(title)}**: {html.escape(recording.metadata.get('player', '?'))}, "
                               f"{recording.num_steps} steps")
-        self._set_slider(-1, max_value=max(recording.num_steps - 1, 0))
+        self._set_slider(0, max_value=max(recording.num_steps, 1))
         self.speed.value = "1x"
         self.play_button.label = "Pause replay"
         self.timeline.visible = True
@@ -304,9 +328,10 @@ class SessionPanel:
     def _scrub(self) -> None:
         if self._setting or self.replay is None:
             return
-        self.replay.seek(int(self.slider.value))
+        self.replay.seek(int(self.slider.value) - 1)  # the slider counts steps done; seek takes the step index
 
     def _set_slider(self, value: int, max_value: int | None = None) -> None:
+        """Move the slider (steps done, 0..N) without seeking."""
         self._setting = True
         try:
             if max_value is not None:
@@ -320,7 +345,7 @@ class SessionPanel:
         if replay is not self.replay or self.session.closed:
             return
         try:
-            self._set_slider(step)
+            self._set_slider(step + 1)
             self.play_button.label = "Pause replay" if playing else "Play replay"
         except Exception:  # the tab went away meanwhile
             log.debug("timeline not updated", exc_info=True)

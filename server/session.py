@@ -26,7 +26,7 @@ from collections.abc import Callable
 import numpy as np
 
 from server import draw
-from server.play import PLAY_KEYS, action_from_keys, stepper_for
+from server.play import DEFAULT_CLOCKWISE, PLAY_KEYS, action_from_keys, stepper_for
 from server.scheduler import PlayScheduler
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,7 @@ MAX_PIXELS = 1280 * 800  # larger canvases are rendered smaller at the same aspe
 JPEG_QUALITY = 85
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke.",
                "stopped": "Stopped."}
+START_HINT = "Press Space or an arrow key to start"  # on the canvas while a play waits for the player (mode "ready")
 
 
 def episode_end(result) -> str | None:
@@ -189,8 +190,9 @@ class Session:
         self.nonce = secrets.token_urlsafe(16)
         self.lock = threading.RLock()
         self.editor = editor_factory(level, size=size)
-        self.mode = "edit"  # "edit" | "play" | "paused" | "ended"
+        self.mode = "edit"  # "edit" | "ready" (waits for the first key) | "play" | "paused" | "ended" | "replay"
         self.held: set[str] = set()
+        self.clockwise = DEFAULT_CLOCKWISE  # per motor binding, the value its keys' clockwise turn drives (play())
         self.closed = False
         self.frames_sent = 0
         self.last_key_seq = -1
@@ -321,6 +323,8 @@ class Session:
             if self.closed:
                 return
             self.last_key_seq = max(self.last_key_seq, seq)
+            if self.mode == "replay" and self.replay is not None and kind == "down" and self.replay.on_key(code, shift):
+                return  # ←/→ step the replay (server.replay)
             if kind == "down" and code == "Space" and not (ctrl or alt or meta):
                 self.toggle_play()
                 return
@@ -329,6 +333,8 @@ class Session:
                     self._edit_call("key", key, ctrl=ctrl, shift=shift, alt=alt, meta=meta)
                 self._push_ack(seq)
                 return
+            if self.mode == "ready" and kind == "down" and code in PLAY_KEYS:
+                self._start()  # the first control key starts the play and acts in its first step
             if code in PLAY_KEYS:
                 if kind == "down":
                     self.held.add(code)
@@ -356,21 +362,30 @@ class Session:
             self.refresh(force=True)
 
     def toggle_play(self) -> None:
+        """Space and the Play button: play the edited level now; start a play that waits; else stop playing."""
         with self.lock:
             if self.mode == "edit":
                 self.play()
+            elif self.mode == "ready":
+                self._start()
             else:
                 self.stop()
+
+    def keys_action(self) -> np.ndarray:
+        """The multi-discrete action of the held keys on the level being played."""
+        return action_from_keys(self.held, self.clockwise)
 
     @property
     def player(self) -> str:
         """Who plays now: "human", or the controller's name (e.g. "agent:general")."""
         return self.controller.player if self.controller is not None else "human"
 
-    def play(self, controller: Controller | None = None) -> None:
+    def play(self, controller: Controller | None = None, wait: bool = False) -> None:
         """Start playing from the edited level (the editor itself is not changed by playing).
 
-        With a controller, it chooses every action (the keyboard drives nothing) until the play stops.
+        With a controller, it chooses every action (the keyboard drives nothing) until the play stops. With
+        `wait`, the play shows its start with START_HINT and steps nothing (mode "ready") until Space or the first
+        control key (which then also acts), so a player who opened a level is not beaten before touching a key.
         """
         with self.lock:
             if self.closed:
@@ -383,20 +398,35 @@ class Session:
                 self._message = f"cannot play: {error}"
                 self.refresh(force=True)
                 return
+            from kinetix.bindings import clockwise_values
+
             stepper = stepper_for(level_file)
             state, params = stepper.start(level_file)
             self._play = (stepper, state, params)
+            self.clockwise = clockwise_values(level_file.level)
             self._steps, self._result, self._message = 0, None, None
             self._step_request = False
             self.controller = controller
-            self.mode = "play"
+            self.mode = "ready" if wait else "play"
             self._play_id += 1
             self._next_tick = None
             self._play_scene = None
             self._play_motion = None
             self.manager.notify("play_started", self, level_file, params)
             self._set_buttons()
-            self.manager.scheduler.add(self)
+            self.manager.scheduler.add(self)  # a waiting play is only looked at (no tick) until it starts
+            if wait:
+                self.refresh(force=True)
+
+    def _start(self) -> None:
+        """A waiting play starts now: its first step comes at once (or with the key that started it)."""
+        if self.mode != "ready":
+            return
+        self.mode = "play"
+        self._next_tick = None
+        self._key_pending = True
+        self._set_buttons()
+        self.manager.scheduler.wake()
 
     def stop(self) -> None:
         """Back to editing; the edited level is shown again as it was before playing."""
@@ -426,7 +456,7 @@ class Session:
     def play_again(self) -> None:
         with self.lock:
             self.stop()
-            self.play()
+            self.play(wait=True)
 
     def toggle_pause(self) -> None:
         with self.lock:
@@ -439,7 +469,7 @@ class Session:
 
     def single_step(self) -> None:
         with self.lock:
-            if self.mode == "play":
+            if self.mode in ("play", "ready"):
                 self.mode = "paused"
                 self._set_buttons()
             if self.mode == "paused":
@@ -448,11 +478,13 @@ class Session:
 
     def _set_buttons(self) -> None:
         editing = self.mode == "edit"
-        self._play_button.label = "Play (Space)" if editing else "Stop (Space)"
+        self._play_button.label = ("Play (Space)" if editing else "Start (Space)" if self.mode == "ready"
+                                   else "Stop (Space)")
         self._pause_button.disabled = self.mode not in ("play", "paused")
         self._pause_button.label = "Resume" if self.mode == "paused" else "Pause"
-        self._step_button.disabled = self.mode not in ("play", "paused")
-        self._again_button.visible = self._edit_button.visible = self.mode == "ended"
+        self._step_button.disabled = self.mode not in ("play", "paused", "ready")
+        self._again_button.visible = self.mode == "ended"
+        self._edit_button.visible = self.mode in ("ended", "ready")
 
     # ------------------------------------------------------------------ the play loop (run by server.scheduler)
 
@@ -488,7 +520,7 @@ class Session:
 
     def _choose_action(self, state, params) -> np.ndarray | None:
         if self.controller is None:
-            return action_from_keys(self.held)
+            return self.keys_action()
         try:
             return np.asarray(self.controller.act(state, params), np.int32)
         except Exception:  # a broken controller stops its play instead of breaking the loop
@@ -559,7 +591,7 @@ class Session:
             message = getattr(overlay, "message", None) or self._message
             return draw.draw_frame(draw.scene_of(level), self._view, overlay=overlay, hud=self.hud(), message=message)
         stepper, state, params = self._play
-        banner = ""
+        banner = START_HINT if self.mode == "ready" else ""
         if self.mode == "ended":
             seconds = self._steps * float(params.sim.dt) * stepper.frame_skip
             banner = f"{RESULT_TEXT.get(self._result, self._result)}\n{seconds:.2f} s, {self._steps} steps"
@@ -573,11 +605,12 @@ class Session:
         return draw.draw_frame(self._play_scene, self._view, hud=self.hud(), banner=banner)
 
     def refresh(self, force: bool = False) -> None:
-        """Push an edit-mode frame if anything visible changed (or `force`); play frames come from the loop."""
+        """Push an edit-mode frame (or a waiting play's) if anything visible changed (or `force`); play frames come
+        from the loop."""
         with self.lock:
-            if self.closed or self.mode != "edit":
+            if self.closed or self.mode not in ("edit", "ready"):  # a waiting play is redrawn like an edit
                 return
-            key = (getattr(self.editor, "revision", None), self._canvas(), self._message)
+            key = (getattr(self.editor, "revision", None), self._canvas(), self._message, self.mode)
             if not force and key == self._pushed_key:
                 return
             self._pushed_key = key
@@ -633,7 +666,7 @@ class Session:
     def close(self) -> None:
         """Stop the play loop and drop references (the tab is gone)."""
         with self.lock:
-            if self.mode in ("play", "paused") and self._play is not None:  # cut short: listeners finish it
+            if self.mode in ("ready", "play", "paused") and self._play is not None:  # cut short: listeners finish it
                 self._notify_stopped()
             self.closed = True
             if self.replay is not None:

@@ -40,6 +40,26 @@
     overlay.style.top = target.offsetTop + "px";
     overlay.style.width = target.clientWidth + "px";
     overlay.style.height = target.clientHeight + "px";
+    placeNotices(target.getBoundingClientRect());
+  }
+
+  // Notices (viser's notifications: "Saved to the gallery", errors, its own toasts) sit at the top LEFT of the
+  // canvas by default, over the HUD line and the key legend the frames draw there. Keep them at the top RIGHT of
+  // the canvas instead (levels are mostly sky there), at most 40% of its width so a long HUD line stays clear.
+  const NOTICE_MARGIN = 12; // pixels from the canvas edges
+  const NOTICE_WIDTH = 296; // viser's own width (20em)
+  function placeNotices(box) {
+    let style = document.getElementById("kinetix-notices");
+    if (!style) {
+      style = document.createElement("style");
+      style.id = "kinetix-notices";
+      document.head.appendChild(style);
+    }
+    const width = Math.max(160, Math.min(NOTICE_WIDTH, Math.round(0.4 * box.width)));
+    const left = Math.max(box.left + NOTICE_MARGIN, box.right - width - NOTICE_MARGIN);
+    style.textContent = ".mantine-Notifications-root { position: fixed !important; top: " +
+      Math.round(box.top + NOTICE_MARGIN) + "px !important; left: " + Math.round(left) + "px !important; " +
+      "right: auto !important; width: " + width + "px !important; max-width: " + width + "px !important; }";
   }
 
   // The overlay sits right after viser's canvas in the same parent, so viser's own overlays (the box-select

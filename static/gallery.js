@@ -3,7 +3,9 @@
 "use strict";
 const TOKEN_KEY = "kinetix.author_token";
 const VOTES_KEY = "kinetix.votes";
-const state = { sort: "newest", size: "", tag: "", q: "", next: null, loading: false };
+// `next` is the API's cursor of the page after the cards shown (null: they are all shown); `shown` holds the ids
+// on the page, so a level never gets two cards; `request` numbers the loads, so only the newest one's answer is used.
+const state = { sort: "newest", size: "", tag: "", q: "", next: null, shown: new Set(), request: 0 };
 const grid = document.getElementById("grid");
 const more = document.getElementById("more");
 const statusLine = document.getElementById("status");
@@ -12,7 +14,8 @@ function token() { return localStorage.getItem(TOKEN_KEY); }
 function myVotes() { try { return JSON.parse(localStorage.getItem(VOTES_KEY) || "{}"); } catch { return {}; } }
 function percent(rate) { return rate === null ? "–" : Math.round(rate * 100) + "%"; }
 function seconds(s) { return s === null ? "–" : s.toFixed(1) + " s"; }
-function setStatus(text) { statusLine.textContent = text || ""; }
+// The status line says what went wrong (kind "error", in red) or what happened (kind "info", e.g. a copied link).
+function setStatus(text, kind = "error") { statusLine.textContent = text || ""; statusLine.className = kind; }
 
 async function api(path, options = {}) {
   const response = await fetch(path, options);
@@ -58,8 +61,8 @@ function card(level) {
   q(".down").addEventListener("click", () => vote(level, node, mine === -1 ? 0 : -1));
   q(".share").addEventListener("click", async () => {
     const link = new URL(`/?level=${id}&mode=play`, location.href).href;
-    try { await navigator.clipboard.writeText(link); setStatus("Link copied: " + link); }
-    catch { setStatus("Share this link: " + link); }
+    try { await navigator.clipboard.writeText(link); setStatus("Link copied: " + link, "info"); }
+    catch { setStatus("Share this link: " + link, "info"); }
   });
   return node;
 }
@@ -90,25 +93,36 @@ async function vote(level, node, value) {
   }
 }
 
+// reset: the first page for the current tabs and filters (replacing the cards); else the page after the shown ones.
 async function load(reset) {
-  if (state.loading) return;
-  state.loading = true;
+  if (!reset && !state.next) return;  // every level is shown already: nothing more to fetch
+  const request = ++state.request;
   const params = new URLSearchParams({ sort: state.sort, limit: "24" });
   if (state.size) params.set("size", state.size);
   if (state.tag) params.set("tag", state.tag);
   if (state.q) params.set("q", state.q);
-  if (!reset && state.next) params.set("cursor", state.next);
+  if (!reset) params.set("cursor", state.next);
+  more.disabled = true;
   try {
     const page = await api("/api/levels?" + params);
-    if (reset) grid.replaceChildren();
-    for (const level of page.items) grid.append(card(level));
+    if (request !== state.request) return;  // a newer load (a filter changed meanwhile) owns the grid
+    if (reset) { grid.replaceChildren(); state.shown.clear(); }
+    for (const level of page.items) {
+      if (state.shown.has(level.id)) continue;
+      state.shown.add(level.id);
+      grid.append(card(level));
+    }
     state.next = page.next;
-    more.hidden = !page.next;
-    setStatus(grid.children.length ? "" : "No levels match.");
+    setStatus(grid.children.length ? "" : "No levels match.", "info");
   } catch (error) {
+    if (request !== state.request) return;
+    if (reset) state.next = null;  // the shown cards are another query's: no "more" of them
     setStatus("Could not load the gallery: " + error.message);
   } finally {
-    state.loading = false;
+    if (request === state.request) {
+      more.hidden = !state.next;
+      more.disabled = false;
+    }
   }
 }
 

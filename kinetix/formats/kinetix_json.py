@@ -30,8 +30,14 @@ from kinetix.level import (
     SizeClass,
 )
 
-# Their polygons have at most 4 vertices (their collision code has 4 vertex slots).
+# Their files declare the vertex slots of every polygon in `static_env_params.max_polygon_vertices`; their level
+# files and engine default use 4. Export writes 4 unless a polygon needs more (up to our 8), so files of levels
+# without such polygons stay exactly like theirs.
 KINETIX_MAX_VERTICES = 4
+# Their collision code (Jax2D 1.0.x `collision.py`) reads only vertex slots 0-3 of a polygon, whatever the file
+# declares: a polygon with more vertices loads and simulates there, but collides as the shape of its first 4
+# vertices. Export says so (export_notes) instead of refusing.
+KINETIX_EXACT_COLLISION_VERTICES = 4
 
 # Their engine settings that we do not model, written on export with the values of their level files.
 _THEIR_SOLVER_PARAMS = dict(
@@ -218,19 +224,20 @@ def _rotate(angle: float, v) -> np.ndarray:
     return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
 
 
-def _body_entry(body: BodySpec | None, inv_mass: float, inv_inertia: float) -> dict:
+def _body_entry(body: BodySpec | None, inv_mass: float, inv_inertia: float, slots: int) -> dict:
+    """One polygon or circle slot with `slots` vertex slots (the file's max_polygon_vertices)."""
     if body is None:  # padding slot
         zero = {"0": 0.0, "1": 0.0}
         return dict(position=zero, rotation=0.0, velocity=zero, angular_velocity=0.0, inverse_mass=0.0,
                     inverse_inertia=0.0, friction=1.0, restitution=0.0, collision_mode=1, active=False,
-                    n_vertices=0, vertices=_keyed([zero] * KINETIX_MAX_VERTICES), radius=0.0, role=0,
+                    n_vertices=0, vertices=_keyed([zero] * slots), radius=0.0, role=0,
                     density=1.0, highlighted=False)
     if body.shape == "polygon":
         clockwise = list(body.vertices)[::-1]
-        padded = clockwise + [clockwise[-1]] * (KINETIX_MAX_VERTICES - len(clockwise))
+        padded = clockwise + [clockwise[-1]] * (slots - len(clockwise))
         n_vertices, vertices, radius = len(clockwise), [_vec(v) for v in padded], 0.0
     else:
-        n_vertices, vertices, radius = 0, [{"0": 0.0, "1": 0.0}] * KINETIX_MAX_VERTICES, _exact(body.radius)
+        n_vertices, vertices, radius = 0, [{"0": 0.0, "1": 0.0}] * slots, _exact(body.radius)
     return dict(
         position=_vec(body.position),
         rotation=_exact(body.angle),
@@ -267,6 +274,34 @@ def collision_matrix(num_bodies: int, pairs: list[tuple[int, int]]) -> np.ndarra
     return ~linked
 
 
+def vertex_slots(spec: LevelSpec) -> int:
+    """The `max_polygon_vertices` a file of this level declares: 4 (theirs), or the most vertices a polygon has."""
+    return max([KINETIX_MAX_VERTICES] + [len(b.vertices) for b in spec.bodies if b.shape == "polygon"])
+
+
+def export_notes(spec: LevelSpec) -> list[str]:
+    """What the public Kinetix does differently with this level's file, in sentences for a person (empty if
+    nothing): polygons of more than 4 vertices load and simulate there but collide as their first 4 vertices, and
+    "always driven" motors (motor_auto) are not in the format."""
+    notes = []
+    auto = sum(j.motor_auto for j in spec.joints)
+    if auto:
+        notes.append(f"{auto} \"always driven\" motor{'s' if auto > 1 else ''} lose{'s' if auto == 1 else ''} that "
+                     "setting: the public format has no field for it, so there the motor runs only from its keys.")
+    many = [b for b in spec.bodies if b.shape == "polygon" and len(b.vertices) > KINETIX_EXACT_COLLISION_VERTICES]
+    if not many:
+        return notes
+    listed = ", ".join(f"the {len(b.vertices)}-vertex polygon at ({b.position[0]:.2f}, {b.position[1]:.2f})"
+                       for b in many)
+    n = KINETIX_EXACT_COLLISION_VERTICES
+    notes.append(
+        f"The file keeps every vertex (max_polygon_vertices = {vertex_slots(spec)}), and the public Kinetix loads "
+        f"and simulates it, but its collision code uses only the first {n} vertices of each polygon: there, {listed} "
+        f"{'collides' if len(many) == 1 else 'collide'} as the four-sided shape of "
+        f"{'its' if len(many) == 1 else 'their'} first {n} vertices. Here every polygon collides with its full shape.")
+    return notes
+
+
 def export_errors(spec: LevelSpec, size: SizeClass) -> list[str]:
     """Why this level cannot be written as a public Kinetix file (empty if it can)."""
     errors = []
@@ -279,10 +314,6 @@ def export_errors(spec: LevelSpec, size: SizeClass) -> list[str]:
         errors.append(f"Kinetix keeps {NUM_WALLS} fixed polygons (its walls) in polygon slots 0-3, but this "
                       f"level's first polygons are {['fixed' if b.fixed else 'dynamic' for b in walls]}; "
                       "build levels on kinetix.level.empty_level / add_walls")
-    for body in polygons:
-        if len(body.vertices) > KINETIX_MAX_VERTICES:
-            errors.append(f"{body.path} has {len(body.vertices)} vertices; the Kinetix format allows at most "
-                          f"{KINETIX_MAX_VERTICES}")
     return errors
 
 
@@ -293,6 +324,7 @@ def write(file: LevelFile) -> dict:
     if errors := export_errors(spec, size):
         raise LevelError("cannot export to the Kinetix format: " + "; ".join(errors))
     P, C = size.polygons, size.circles
+    slots = vertex_slots(spec)
 
     sim = level.sim
     active = np.nonzero(np.asarray(sim.bodies.active))[0]
@@ -302,15 +334,15 @@ def write(file: LevelFile) -> dict:
     for k, body in enumerate(spec.bodies):
         if body.shape == "polygon":
             global_index.append(len(polygon_entries))
-            polygon_entries.append(_body_entry(body, inv_mass[k], inv_inertia[k]))
+            polygon_entries.append(_body_entry(body, inv_mass[k], inv_inertia[k], slots))
         else:
             global_index.append(P + len(circle_entries))
             # Their disc inertia is m r^2 / 4 (ours the textbook m r^2 / 2): write theirs, so the level
             # behaves in their engine like a circle made there.
             their_inv_inertia = 0.0 if body.fixed else 4.0 / (math.pi * body.radius**4 * body.density)
-            circle_entries.append(_body_entry(body, inv_mass[k], their_inv_inertia))
-    polygon_entries += [_body_entry(None, 0, 0) for _ in range(P - len(polygon_entries))]
-    circle_entries += [_body_entry(None, 0, 0) for _ in range(C - len(circle_entries))]
+            circle_entries.append(_body_entry(body, inv_mass[k], their_inv_inertia, slots))
+    polygon_entries += [_body_entry(None, 0, 0, slots) for _ in range(P - len(polygon_entries))]
+    circle_entries += [_body_entry(None, 0, 0, slots) for _ in range(C - len(circle_entries))]
 
     def world_point(body_index: int, anchor) -> np.ndarray:
         body = spec.bodies[body_index]
@@ -366,7 +398,7 @@ def write(file: LevelFile) -> dict:
     )
     static_env_params = dict(
         num_polygons=P, num_circles=C, num_joints=size.joints, num_thrusters=size.thrusters,
-        max_polygon_vertices=KINETIX_MAX_VERTICES, num_solver_iterations=10, solver_batch_size=16,
+        max_polygon_vertices=slots, num_solver_iterations=10, solver_batch_size=16,
         do_warm_starting=True, num_static_fixated_polys=NUM_WALLS, screen_dim={"0": 500, "1": 500}, downscale=4,
         frame_skip=p.frame_skip, max_shape_size=2, num_motor_bindings=NUM_MOTOR_BINDINGS,
         num_thruster_bindings=NUM_THRUSTER_BINDINGS,

@@ -12,9 +12,10 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+from collections.abc import Callable
 
 from kinetix.formats import BodySpec, JointSpec, LevelSpec, ThrusterSpec, build
-from kinetix.level import LevelError, LevelFile, SizeClass, size_class
+from kinetix.level import SIZES, LevelError, LevelFile, SizeClass, size_class
 from server.editor import levelio, properties
 from server.editor import selection as sel
 from server.editor.geometry import Point, contains, convexity_error, outline, polygon_body, rotate, to_local
@@ -30,6 +31,7 @@ DEFAULT_RADIUS = 0.2  # a click with the circle tool (no drag) makes a circle of
 DEFAULT_SIDE = 0.4  # and with the rectangle tool, a square of this side
 MIN_SIZE = 0.02  # m: smaller circles and rectangles are refused
 CAPACITY_NAMES = {"polygons": "polygon", "circles": "circle", "joints": "joint", "thrusters": "thruster"}
+GROWTH = {"s": "m", "m": "l"}  # the next larger size class a full level is offered (none after l or a custom size)
 
 
 @dataclasses.dataclass
@@ -61,11 +63,19 @@ class Editor:
         self._file_revision = 0
         self.revision = 0
         self.history = History()
+        # The level the editor started with. While it is still shown, unchanged (the very same object: every edit,
+        # undo or restored draft replaces self.spec), a level opened over it (a gallery link, an upload) becomes the
+        # history's base, so undo never goes back to that blank or default level.
+        self._start_spec = spec
         self.tool = "select"
         self.selection: list[tuple[str, int]] = []
         self.snapping = True
         self.grid = 0.1
         self.message: str | None = None
+        # After a "no polygon left" refusal: the size class the panel offers to move the level to, and the refused
+        # edit, which grow_size() does again once the level has room.
+        self.size_offer: str | None = None
+        self._retry: Callable[[], str | None] | None = None
         self._points: list[Point] = []  # polygon vertices placed so far
         self._press: dict | None = None  # the pointer press in progress
         self._hover: Point | None = None
@@ -80,8 +90,10 @@ class Editor:
     def _bump(self) -> None:
         self.revision += 1
 
-    def _say(self, message: str | None) -> str | None:
+    def _say(self, message: str | None, offer: str | None = None,
+             retry: Callable[[], str | None] | None = None) -> str | None:
         self.message = message
+        self.size_offer, self._retry = offer, retry
         self._bump()
         return message
 
@@ -109,7 +121,7 @@ class Editor:
         if selection is not None:
             self.selection = selection
         self._clean_selection()
-        self.message = None
+        self.message, self.size_offer, self._retry = None, None, None
         self._bump()
         self._file_revision = self.revision
         return None
@@ -130,13 +142,30 @@ class Editor:
             self._file_revision = self.revision
         return self._file
 
-    def _room(self, kind: str, extra: int = 1) -> str | None:
-        """The refusal when `extra` more of `kind` ("polygons", ...) do not fit, else None."""
+    def _room(self, kind: str, extra: int = 1, retry: Callable[[], str | None] | None = None) -> str | None:
+        """Refuse (and say so) when `extra` more of `kind` ("polygons", ...) do not fit; None if they do.
+
+        The refusal offers the next size class when there is one (size_offer; the panel shows a button), and keeps
+        `retry`, the refused edit, for grow_size() to do once the level is there."""
         used = self.limits()[kind][0]
         capacity = getattr(self.size, kind)
-        if used + extra > capacity:
-            return f"no {CAPACITY_NAMES[kind]} left: {used} of {capacity} used in size {self.size.name}"
-        return None
+        if used + extra <= capacity:
+            return None
+        refusal = f"no {CAPACITY_NAMES[kind]} left: {used} of {capacity} used in size {self.size.name}"
+        bigger = GROWTH.get(self.size.name) if SIZES.get(self.size.name) == self.size else None
+        if bigger is not None and used + extra <= getattr(SIZES[bigger], kind):
+            return self._say(f"{refusal}; \"Move to size {bigger}\" in the panel makes room", bigger, retry)
+        return self._say(refusal)
+
+    def grow_size(self) -> str | None:
+        """Move the level to the size class offered by the last "no ... left" refusal (one undo step), then do the
+        refused edit again (another step). Returns the refusal, or None."""
+        offer, retry = self.size_offer, self._retry
+        if offer is None:
+            return self._say("no larger size class is offered: the level fits, or it is already in size l")
+        if refusal := self.set_size(offer):
+            return refusal
+        return retry() if retry is not None else None
 
     def limits(self) -> dict[str, tuple[int, int]]:
         """(used, capacity) per kind; polygons include the 4 walls, as the size classes do."""
@@ -162,7 +191,7 @@ class Editor:
         self.spec, self.size = snapshot.spec, snapshot.size
         self._cancel()
         self._clean_selection()
-        self.message = None
+        self.message, self.size_offer, self._retry = None, None, None
         self._bump()
         return True
 
@@ -179,7 +208,7 @@ class Editor:
             raise EditorError(f"unknown tool {name!r}: use one of {', '.join(TOOLS)}")
         self._cancel()
         self.tool = name
-        self.message = None
+        self.message, self.size_offer, self._retry = None, None, None
         self._bump()
 
     def _cancel(self) -> None:
@@ -384,8 +413,8 @@ class Editor:
 
     def _add_body(self, body: BodySpec) -> str | None:
         kind = "circles" if body.shape == "circle" else "polygons"
-        if refusal := self._room(kind):
-            return self._say(refusal)
+        if refusal := self._room(kind, retry=lambda: self._add_body(body)):
+            return refusal
         if body.shape == "polygon" and len(body.vertices) > self.size.max_vertices:
             return self._say(f"too many vertices: {len(body.vertices)}, size {self.size.name} allows "
                              f"{self.size.max_vertices}")
@@ -432,8 +461,8 @@ class Editor:
         return self._add_body(polygon_body(points))
 
     def _add_joint(self, p: Point, fixed: bool) -> str | None:
-        if refusal := self._room("joints"):
-            return self._say(refusal)
+        if refusal := self._room("joints", retry=lambda: self._add_joint(p, fixed)):
+            return refusal
         under = sel.bodies_at(self.spec, p)
         if len(under) < 2:
             return self._say("click where two bodies overlap to join them")
@@ -446,8 +475,8 @@ class Editor:
         return self._commit(spec, selection=[("joint", len(spec.joints) - 1)])
 
     def _add_thruster(self, body: int, at: Point, aim: Point | None) -> str | None:
-        if refusal := self._room("thrusters"):
-            return self._say(refusal)
+        if refusal := self._room("thrusters", retry=lambda: self._add_thruster(body, at, aim)):
+            return refusal
         b = self.spec.bodies[body]
         world = math.pi / 2 if aim is None or aim == at else math.atan2(aim[1] - at[1], aim[0] - at[0])
         spec = self._candidate()
@@ -482,7 +511,7 @@ class Editor:
                             ("circles", sum(b.shape == "circle" for b in bodies)),
                             ("joints", len(joints)), ("thrusters", len(thrusters))):
             if extra and (refusal := self._room(kind, extra)):
-                return self._say(refusal)
+                return refusal
         self._pastes += 1
         spec = self._candidate()
         items = sel.paste(spec, self._clip, PASTE_OFFSET[0] * self._pastes, PASTE_OFFSET[1] * self._pastes)
@@ -588,13 +617,22 @@ class Editor:
         return self._commit(levelio.random_level(seed, new), new, selection=[])
 
     def import_bytes(self, data: bytes, filename: str = "") -> None:
+        """Open a level file (either format). Over the untouched starting level it is the history's base (undo
+        does not go back to the blank level); over an edited or opened level it is one undo step back to that."""
         spec, size = levelio.parse(data, filename)
         self._cancel()
+        base = self.spec is self._start_spec and not self.can_undo and not self.can_redo
         if refusal := self._commit(spec, size, selection=[]):
             raise EditorError(refusal)
+        if base:
+            self.history.undo_stack.clear()
 
     def export(self, format: str = "ours") -> str:
         return levelio.export(self.level_file(), format)
+
+    def export_notes(self, format: str = "ours") -> list[str]:
+        """What the public tools do differently with the exported file (e.g. 5-8-vertex polygons in Kinetix)."""
+        return levelio.export_notes(self.level_file(), format)
 
     # ------------------------------------------------------------ keys and overlay
 

@@ -64,6 +64,13 @@ def export(file: LevelFile, format: str) -> str:
         raise EditorError(str(error)) from None
 
 
+def export_notes(file: LevelFile, format: str) -> list[str]:
+    """What the format's other tools will do differently with the exported file (sentences; [] if nothing)."""
+    if format != "kinetix":
+        return []
+    return kinetix_json.export_notes(describe(file.level, file.params, file.name))
+
+
 def new_level(size: str | SizeClass) -> LevelSpec:
     size = size_class(size)
     return normalised(LevelFile(empty_level(size), size=size))
@@ -110,5 +117,5 @@ def fits(spec: LevelSpec, size: SizeClass) -> LevelFile:
         raise EditorError(str(error)) from None
 
 
-__all__ = ["EditorError", "parse", "export", "new_level", "random_level", "shaken", "fits", "smallest_size",
-           "warm_up"]
+__all__ = ["EditorError", "parse", "export", "export_notes", "new_level", "random_level", "shaken", "fits",
+           "smallest_size", "warm_up"]

@@ -29,6 +29,11 @@ MOTOR_BINDINGS = ("0: Left/Right", "1: Up/Down", "2: W/S", "3: A/D")
 THRUSTER_BINDINGS = ("0: key 1", "1: key 2")
 
 
+def _plain(text: str) -> str:
+    """`text` shown as itself in a markdown widget (a level name or an error can hold *, _, < or [)."""
+    return "".join("\\" + c if c in "\\`*_[]<>|" else c for c in text)
+
+
 class EditorPanel:
     def __init__(self, gui: viser.GuiApi, editor: Editor, on_change: Callable[[], None],
                  send_download: Callable[[str, bytes], None], *, lock: threading.RLock | None = None):
@@ -78,6 +83,10 @@ class EditorPanel:
         self.tools.on_click(lambda event: self._act(lambda: ed.set_tool(TOOL_OF_LABEL[event.target.value])))
         self.tool_line = gui.add_markdown("")
         self.message = gui.add_markdown("")
+        # Offered with a "no polygon left" refusal (Editor.size_offer): moves the level up one size class, then
+        # does the refused edit. Hidden otherwise.
+        self.grow_button = self._button("Move to a larger size", ed.grow_size, "the level keeps everything; "
+                                        "the next size class has more room", visible=False)
         self.limits_line = gui.add_markdown("")
 
         with gui.add_folder("Edit"):
@@ -168,6 +177,9 @@ class EditorPanel:
             self.upload.on_upload(lambda _: self.upload_file(self.upload.value.name, self.upload.value.content))
             self._button("Download (our format)", lambda: self.download("ours"))
             self._button("Download (Kinetix JSON)", lambda: self.download("kinetix"))
+            # What a download did: the file sent, what the public tools do differently with it, or the full reason
+            # it cannot be written (in the panel, where a long message has room; not on the canvas).
+            self.file_status = gui.add_markdown("")
 
     def _next_seed(self) -> int:
         seed = int(self.seed.value)
@@ -186,18 +198,19 @@ class EditorPanel:
         self._act(lambda: self.editor.import_bytes(content, name))
 
     def download(self, format: str) -> None:
+        label = "the Kinetix format" if format == "kinetix" else "our format"
         with self.lock:
             try:
                 text = self.editor.export(format)
+                notes = self.editor.export_notes(format)
             except EditorError as error:
-                self.editor.notify(str(error))
-                self.refresh()
-                text = None
-        if text is None:
-            self.on_change()
-            return
+                self.file_status.content = f"**Cannot download in {label}:** {_plain(str(error))}"
+                return
         name = (self.editor.spec.name or "level").replace("/", "_")
-        self.send_download(f"{name}.kinetix.json" if format == "kinetix" else f"{name}.json", text.encode())
+        filename = f"{name}.kinetix.json" if format == "kinetix" else f"{name}.json"
+        self.send_download(filename, text.encode())
+        self.file_status.content = "\n\n".join([f"Downloaded {_plain(filename)}."]
+                                                + [f"**Note:** {_plain(note)}" for note in notes])
 
     # ------------------------------------------------------------ editor -> widgets
 
@@ -217,6 +230,9 @@ class EditorPanel:
             self.tool_line.content = f"**Tool:** {ed.tool}" + (" — click vertices, Enter to finish"
                                                                  if ed.tool in ("triangle", "polygon") else "")
             self.message.content = f"⚠ {ed.message}" if ed.message else ""
+            self.grow_button.visible = ed.size_offer is not None and ed.message is not None
+            if ed.size_offer is not None:
+                self.grow_button.label = f"Move to size {ed.size_offer}"
             self.limits_line.content = "**Left:** " + ", ".join(
                 f"{capacity - used} {kind}" for kind, (used, capacity) in ed.limits().items())
             self.undo_button.disabled = not ed.can_undo

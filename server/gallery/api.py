@@ -5,6 +5,12 @@
 Request bodies are read by hand, not by FastAPI's body parameters, so the 1 MB limit is enforced before
 anything is parsed; their schemas are still published in the OpenAPI description. Every error is a 4xx
 JSON `{"detail": "what is wrong"}` and stores nothing. Store calls block, so they run in the thread pool.
+
+Cross-site and abuse rules: a body must be `Content-Type: application/json` (415 otherwise), so a page on another
+site cannot send one with a "simple" form or text/plain request (server.web_security checks `Origin` too); writes
+and new identities are rate-limited per client (429 with Retry-After, server.gallery.limits); play statistics are
+not accepted from clients at all: the server records the plays it ran itself (`Store.record_play`, from
+server.gallery.tab). A browser's voter identity is a server-issued HttpOnly, SameSite=Strict cookie.
 """
 
 from __future__ import annotations
@@ -16,10 +22,13 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from server.gallery.limits import RateLimited, RateLimits
 from server.gallery.runs import BestRuns
-from server.gallery.store import SIZES, SORTS, Store, StoreError, check_admin
+from server.gallery.store import SIZES, SORTS, Store, StoreError, Unauthorized, check_admin
 
 MAX_BODY = 1_000_000  # bytes
+VOTER_COOKIE = "kinetix_voter"  # a voter token (an author token) issued by the server, HttpOnly
+VOTER_COOKIE_AGE = 400 * 24 * 3600  # seconds; the most Chromium keeps a cookie
 
 
 class Stats(BaseModel):
@@ -91,18 +100,6 @@ class VoteResult(BaseModel):
     down: int
     score: int
     value: int
-    author_token: str | None = None
-
-
-class PlayBody(BaseModel):
-    kind: Literal["human", "agent"]
-    solved: bool
-    steps: int = Field(ge=0, le=10_000_000)
-    seconds: float = Field(ge=0, le=1e7)
-
-
-class PlayRecorded(BaseModel):
-    id: int
 
 
 class Ok(BaseModel):
@@ -115,7 +112,11 @@ def _body_doc(model: type[BaseModel]) -> dict:
 
 async def read_json(request: Request, fields: dict[str, bool]) -> dict[str, Any]:
     """The request body as a JSON object, at most MAX_BODY bytes, with only the known `fields`
-    ({name: required}); raises 413 / 400 / 422 before anything is stored."""
+    ({name: required}); raises 415 / 413 / 400 / 422 before anything is stored."""
+    media_type = request.headers.get("content-type", "").partition(";")[0].strip().lower()
+    if media_type != "application/json":
+        raise HTTPException(415, f"body must be sent as Content-Type: application/json, got {media_type[:80]!r}"
+                            if media_type else "body must be sent as Content-Type: application/json")
     declared = request.headers.get("content-length")
     if declared is not None and (not declared.isdigit() or int(declared) > MAX_BODY):
         raise HTTPException(413, f"request body over {MAX_BODY} bytes")
@@ -158,6 +159,25 @@ async def call(function, *args, **kwargs):
         return await run_in_threadpool(function, *args, **kwargs)
     except StoreError as error:
         raise HTTPException(error.status, error.message) from None
+    except UnicodeEncodeError:  # a safety net: the store rejects lone surrogates itself, naming the field
+        raise HTTPException(422, "text must be valid Unicode (no lone UTF-16 surrogates)") from None
+
+
+def client_key(request: Request) -> str:
+    """Whom a rate limit counts: the peer address (see server.gallery.limits about proxies)."""
+    return request.client.host if request.client is not None else "unknown"
+
+
+def limited(limits: RateLimits, kind: str, request: Request) -> None:
+    try:
+        limits.take(kind, client_key(request))
+    except RateLimited as error:
+        raise HTTPException(429, str(error), headers={"Retry-After": str(error.retry_after)}) from None
+
+
+def _public_vote(result: dict) -> dict:
+    """A vote's answer without the voter's token: a browser keeps it only in the HttpOnly cookie."""
+    return {key: result[key] for key in ("up", "down", "score", "value")}
 
 
 def _with_thumbnail(item: dict) -> dict:
@@ -165,9 +185,11 @@ def _with_thumbnail(item: dict) -> dict:
     return item
 
 
-def make_router(store: Store, admin_token: str | None = None) -> APIRouter:
-    """The gallery API on `store`; `admin_token` (e.g. env KINETIX_ADMIN_TOKEN) may update or delete any level."""
+def make_router(store: Store, admin_token: str | None = None, limits: RateLimits | None = None) -> APIRouter:
+    """The gallery API on `store`; `admin_token` (e.g. env KINETIX_ADMIN_TOKEN) may update or delete any level;
+    `limits` caps writes and new identities per client (default: RateLimits())."""
     router = APIRouter(tags=["gallery"])
+    limits = limits if limits is not None else RateLimits()
 
     def user_token(request: Request) -> str | None:
         token = bearer(request)
@@ -192,9 +214,12 @@ def make_router(store: Store, admin_token: str | None = None) -> APIRouter:
     @router.post("/levels", response_model=Created, status_code=201, openapi_extra=_body_doc(CreateBody),
                  summary="Save a new level (a new author token is returned when none is sent)")
     async def create_level(request: Request) -> dict:
+        limited(limits, "write", request)
         token = user_token(request)
         data = await read_json(request, {"name": True, "description": False, "tags": False, "level": True,
                                          "parent": False})
+        if token is None:
+            limited(limits, "identity", request)  # a new author
         level_id, new_token = await call(store.create_level, data["name"], data["level"],
                                          description=data.get("description", ""), tags=data.get("tags", []),
                                          token=token, parent=data.get("parent"))
@@ -214,6 +239,7 @@ def make_router(store: Store, admin_token: str | None = None) -> APIRouter:
     @router.put("/levels/{level_id}", response_model=Ok, openapi_extra=_body_doc(UpdateBody),
                 summary="Change a level (Authorization: Bearer <author or admin token>)")
     async def update_level(level_id: str, request: Request) -> dict:
+        limited(limits, "write", request)
         token = bearer(request)
         admin = check_admin(token, admin_token)
         if token is None:
@@ -226,28 +252,38 @@ def make_router(store: Store, admin_token: str | None = None) -> APIRouter:
     @router.delete("/levels/{level_id}", response_model=Ok,
                    summary="Delete a level (Authorization: Bearer <author or admin token>)")
     async def delete_level(level_id: str, request: Request) -> dict:
+        limited(limits, "write", request)
         token = bearer(request)
         admin = check_admin(token, admin_token)
         await call(store.delete_level, level_id, None if admin else token, admin=admin)
         return {"ok": True}
 
     @router.post("/levels/{level_id}/vote", response_model=VoteResult, openapi_extra=_body_doc(VoteBody),
-                 summary="Vote +1, -1 or 0 (withdraw); one vote per token per level")
-    async def vote(level_id: str, request: Request) -> dict:
+                 summary="Vote +1, -1 or 0 (withdraw); one vote per voter per level. The voter is the Bearer "
+                         "author token if sent, else the kinetix_voter cookie, which is issued on the first vote")
+    async def vote(level_id: str, request: Request, response: Response) -> dict:
+        limited(limits, "write", request)
         token = user_token(request)
         data = await read_json(request, {"value": True})
         value = data["value"]
-        if not isinstance(value, int) or isinstance(value, bool):
+        if not isinstance(value, int) or isinstance(value, bool) or value not in (-1, 0, 1):
             raise HTTPException(422, "value: expected 1 (up), -1 (down) or 0 (withdraw)")
-        return await call(store.vote, level_id, token, value)
-
-    @router.post("/levels/{level_id}/plays", response_model=PlayRecorded, status_code=201,
-                 openapi_extra=_body_doc(PlayBody), summary="Record one finished play")
-    async def record_play(level_id: str, request: Request) -> dict:
-        data = await read_json(request, {"kind": True, "solved": True, "steps": True, "seconds": True})
-        play_id = await call(store.record_play, level_id, data["kind"], solved=data["solved"], steps=data["steps"],
-                             seconds=data["seconds"])
-        return {"id": play_id}
+        if token is None:
+            cookie = request.cookies.get(VOTER_COOKIE)
+            if cookie and len(cookie) <= 200:
+                try:
+                    return _public_vote(await call(store.vote, level_id, cookie, value))
+                except HTTPException as error:
+                    if error.status_code != Unauthorized.status:
+                        raise
+                    # an unknown cookie (e.g. a reset gallery): a new voter, like a first vote
+            await call(store.thumbnail, level_id)  # 404 for an unknown level before an identity is spent on it
+            limited(limits, "identity", request)
+        result = await call(store.vote, level_id, token, value)
+        if result.get("author_token"):
+            response.set_cookie(VOTER_COOKIE, result["author_token"], max_age=VOTER_COOKIE_AGE, path="/api",
+                                httponly=True, samesite="strict", secure=request.url.scheme == "https")
+        return _public_vote(result)
 
     @router.get("/levels/{level_id}/stats", response_model=Stats, summary="Plays, solve rates, best time, votes")
     async def stats(level_id: str) -> dict:

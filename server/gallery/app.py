@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -19,7 +20,9 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from server.gallery.api import make_router
+from server.gallery.limits import RateLimits
 from server.gallery.store import Store, open_store
+from server.web_security import LOCAL_HOSTS, WebSecurity, allowed_hosts_for
 
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 
@@ -30,9 +33,13 @@ def gallery_page() -> FileResponse:
                         headers={"Cache-Control": "no-cache"})
 
 
-def create_gallery_app(store: Store, admin_token: str | None = None) -> FastAPI:
+def create_gallery_app(store: Store, admin_token: str | None = None, *, limits: RateLimits | None = None,
+                       allowed_hosts: Iterable[str] = LOCAL_HOSTS) -> FastAPI:
+    """The gallery alone; requests must name one of `allowed_hosts` (server.web_security), writes and new
+    identities are rate-limited by `limits` (default RateLimits())."""
     app = FastAPI(title="Kinetix gallery", version="1")
-    app.include_router(make_router(store, admin_token=admin_token), prefix="/api")
+    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)
+    app.include_router(make_router(store, admin_token=admin_token, limits=limits), prefix="/api")
     app.add_api_route("/gallery", gallery_page, include_in_schema=False)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app
@@ -46,12 +53,34 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8081)
     parser.add_argument("--no-seed", action="store_true", help="do not seed an empty gallery from levels/")
+    add_web_arguments(parser)
     args = parser.parse_args(argv)
     import uvicorn
 
     store = open_store(args.db, data_dir=args.data, **({"seed_dir": None} if args.no_seed else {}))
-    uvicorn.run(create_gallery_app(store, os.environ.get("KINETIX_ADMIN_TOKEN")), host=args.host, port=args.port,
-                log_level="warning")
+    app = create_gallery_app(store, os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits_from(args),
+                             allowed_hosts=allowed_hosts_for(args.host, args.allowed_hosts))
+    uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+
+
+def add_web_arguments(parser: argparse.ArgumentParser) -> None:
+    """--allowed-hosts and the rate limits, shared by `kinetix serve` and this standalone app."""
+    defaults = RateLimits()
+    parser.add_argument("--allowed-hosts", type=lambda text: [h for h in text.split(",") if h.strip()],
+                        default=[], metavar="NAMES",
+                        help="comma-separated host names or addresses clients may use in the URL besides the --host "
+                             "address, localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS "
+                             "rebinding)")
+    parser.add_argument("--write-limit", type=float, default=defaults.writes_per_minute, metavar="N",
+                        help="gallery writes (save, change, delete, vote) per minute per client address; 0 = no "
+                             f"limit (default: {defaults.writes_per_minute:g})")
+    parser.add_argument("--identity-limit", type=float, default=defaults.identities_per_hour, metavar="N",
+                        help="new author or voter identities per hour per client address; 0 = no limit "
+                             f"(default: {defaults.identities_per_hour:g})")
+
+
+def limits_from(args: argparse.Namespace) -> RateLimits:
+    return RateLimits(writes_per_minute=args.write_limit, identities_per_hour=args.identity_limit)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,9 @@
 """Best runs: the gallery keeps the recording of the best human solve of each level, and only that one.
 
-Best = fewest simulated seconds, ties broken by fewest steps, then by the earlier play. Retention rule: a level
+Best = fewest simulated seconds, ties broken by fewest steps, then by the earlier play. The kept run is shown as
+the level's best run only while it set the best time: when a faster human solve has no recording (a server
+started with --no-record, a recording that failed), the best time has no run to show and `best_run_file` says so
+(None), rather than offering a slower run beside a better time. Retention rule: a level
 has at most one recording file in the gallery (`best-<level>-<random>.mcap` in `store.recordings_dir`), named by
 the `recording_path` of its play row. A new solve's recording is copied in only if it beats the kept one; then
 the superseded row's `recording_path` is cleared and its file deleted. Files no row names (a crash between the
@@ -17,13 +20,19 @@ import shutil
 import threading
 from pathlib import Path
 
-from sqlalchemy import and_, select, update
+from sqlalchemy import and_, func, select, update
 
 from server.gallery.store import Store, check_id, plays_t
 
 log = logging.getLogger(__name__)
 
 PREFIX = "best-"
+
+
+def _best_seconds(conn, level_id: str) -> float | None:
+    """The level's best human time (recorded or not), as the gallery's stats show it."""
+    return conn.execute(select(func.min(plays_t.c.seconds)).where(
+        and_(plays_t.c.level_id == level_id, plays_t.c.kind == "human", plays_t.c.solved))).scalar()
 
 
 def _best_rows(conn, level_id: str):
@@ -46,11 +55,15 @@ class BestRuns:
         self._lock = threading.Lock()  # one prune at a time in this process (the database orders the rest)
 
     def best_run_file(self, level_id: str) -> Path | None:
-        """The level's kept best-run recording, or None (no recorded human solve, or its file is gone)."""
+        """The recording of the play that set the level's best time, or None (no recorded human solve, its file is
+        gone, or a faster solve was not recorded)."""
         check_id(level_id)
         with self.store._read() as conn:
             rows = _best_rows(conn, level_id)
+            best = _best_seconds(conn, level_id)
         for row in rows:
+            if best is not None and row.seconds > best + 1e-9:  # the best time's play has no recording
+                return None
             path = self.directory / row.recording_path
             if path.is_file():
                 return path
@@ -109,14 +122,16 @@ class BestRuns:
                 removed.append(path)
         return removed
 
-    def candidate(self, recorder, session, result: str, steps: int, seconds: float) -> str | None:
+    def candidate(self, recorder, session, result: str, steps: int, seconds: float,
+                  player: str = "human") -> str | None:
         """For a finished play of a gallery level: the best-run file name to record with it, if this play is a
-        human solve whose recording (server.recorder.PlayRecorder) beats the kept best run; else None.
+        human solve whose recording (server.recorder.PlayRecorder) beats the kept best run; else None. `player`:
+        the recording's player ("human", or "race" for the human's side of a race, which is the session's play).
         Waits for the recording to be finished, so call it off the play thread (on_play_end runs on its own)."""
         if result != "solved" or recorder is None:
             return None
         finished = recorder.last_finished(session)
-        if (finished is None or finished.path is None or finished.player != "human" or finished.result != "solved"
+        if (finished is None or finished.path is None or finished.player != player or finished.result != "solved"
                 or finished.level_id != session.gallery_id or finished.steps != steps):
             return None
         return self.offer(session.gallery_id, finished.path, steps, seconds)

@@ -69,6 +69,7 @@ MAX_DESCRIPTION = 2000
 MAX_TAGS = 10
 TAG_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,31}$")
 THUMBNAIL_SIZE = 256
+ID_RE = re.compile(r"[A-Za-z0-9_-]{1,32}")
 RECORDING_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")  # a plain file name under recordings/
 
 
@@ -199,6 +200,7 @@ def prepare_level(level: Any, name: str | None = None) -> SavedLevel:
 
     if not isinstance(level, dict):
         raise Invalid(f"level: expected a JSON object in our format or the Kinetix format, got {_json_type(level)}")
+    check_document_text("level", level)
     try:
         file = load_level(level)
     except LevelError as error:
@@ -217,6 +219,38 @@ def _json_type(value: Any) -> str:
             type(None): "null"}.get(type(value), type(value).__name__)
 
 
+def check_unicode(field: str, text: str) -> str:
+    """`text` unchanged if both databases can store it: no lone UTF-16 surrogates (JSON's "\\ud800" decodes to
+    one, and neither UTF-8 nor PostgreSQL can hold it) and no NUL (PostgreSQL text cannot hold it)."""
+    if "\x00" in text:
+        raise Invalid(f"{field}: must not contain NUL characters")
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError as error:
+        raise Invalid(f"{field}: contains a lone UTF-16 surrogate ({text[error.start]!r} at character "
+                      f"{error.start}); text must be valid Unicode") from None
+    return text
+
+
+def check_document_text(field: str, value: Any, depth: int = 0) -> None:
+    """Every string (keys too) of a parsed JSON document is valid Unicode; the error names the path."""
+    if depth > 64:
+        raise Invalid(f"{field}: nested too deeply")
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise Invalid(f"{field}: contains a lone UTF-16 surrogate; text must be valid Unicode") from None
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            path = f"{field}.{str(key).encode('utf-8', 'replace').decode()}"  # printable even if the key is not
+            check_document_text(path, key, depth + 1)
+            check_document_text(path, item, depth + 1)
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            check_document_text(f"{field}[{i}]", item, depth + 1)
+
+
 def check_name(name: Any) -> str:
     if not isinstance(name, str):
         raise Invalid(f"name: expected a string, got {_json_type(name)}")
@@ -224,9 +258,7 @@ def check_name(name: Any) -> str:
         raise Invalid("name: must not be empty")
     if len(name) > MAX_NAME:
         raise Invalid(f"name: {len(name)} characters, at most {MAX_NAME} allowed")
-    if "\x00" in name:
-        raise Invalid("name: must not contain NUL characters")
-    return name
+    return check_unicode("name", name)
 
 
 def check_description(description: Any) -> str:
@@ -234,9 +266,7 @@ def check_description(description: Any) -> str:
         raise Invalid(f"description: expected a string, got {_json_type(description)}")
     if len(description) > MAX_DESCRIPTION:
         raise Invalid(f"description: {len(description)} characters, at most {MAX_DESCRIPTION} allowed")
-    if "\x00" in description:
-        raise Invalid("description: must not contain NUL characters")
-    return description
+    return check_unicode("description", description)
 
 
 def check_tags(tags: Any) -> list[str]:
@@ -255,7 +285,7 @@ def check_tags(tags: Any) -> list[str]:
 
 
 def check_id(level_id: Any) -> str:
-    if not isinstance(level_id, str) or not re.fullmatch(r"[A-Za-z0-9_-]{1,32}", level_id):
+    if not isinstance(level_id, str) or not ID_RE.fullmatch(level_id):
         raise NotFound(f"no level with id {str(level_id)[:40]!r}")
     return level_id
 
@@ -267,7 +297,8 @@ def _encode_cursor(key: int, level_id: str) -> str:
 def _decode_cursor(cursor: str) -> tuple[int, str]:
     try:
         key, level_id = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
-        if isinstance(key, int) and not isinstance(key, bool) and isinstance(level_id, str):
+        if (isinstance(key, int) and not isinstance(key, bool) and isinstance(level_id, str)
+                and ID_RE.fullmatch(level_id) and abs(key) < 2**62):
             return key, level_id
     except (ValueError, TypeError, UnicodeDecodeError):
         pass
@@ -338,6 +369,8 @@ class Store:
         tags = check_tags(tags if tags is not None else [])
         if parent is not None and not isinstance(parent, str):
             raise Invalid("parent: expected a level id string or null")
+        if parent is not None:
+            check_unicode("parent", parent)
         saved = prepared or prepare_level(level, name)
         level_id = secrets.token_urlsafe(9)
         with self._write() as conn:
@@ -487,9 +520,12 @@ class Store:
             func.count().filter(and_(agent, plays_t.c.solved)).label("agent_solved"),
             func.min(case((and_(human, plays_t.c.solved), plays_t.c.seconds))).label("best_human_seconds"),
             func.min(case((and_(human, plays_t.c.solved), plays_t.c.steps))).label("best_human_steps"),
-            # server.gallery.runs keeps the recording of the best human solve only: any named file is the best run
+            # server.gallery.runs keeps the recording of the best recorded human solve only; it is the level's best
+            # run when no faster solve went unrecorded (then the best time has no run to show: has_best_run false)
             func.count().filter(and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None)))
             .label("best_runs"),
+            func.min(case((and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None)), plays_t.c.seconds)))
+            .label("best_run_seconds"),
         ).where(plays_t.c.level_id == level_id if level_id else True).group_by(plays_t.c.level_id).subquery("p"))
         votes = (select(
             votes_t.c.level_id,
@@ -516,7 +552,7 @@ class Store:
                    n(p.c.plays).label("plays"), human_plays.label("human_plays"), human_solved.label("human_solved"),
                    n(p.c.agent_plays).label("agent_plays"), n(p.c.agent_solved).label("agent_solved"),
                    p.c.best_human_seconds, p.c.best_human_steps, n(v.c.up).label("up"), n(v.c.down).label("down"),
-                   n(p.c.best_runs).label("best_runs")]
+                   n(p.c.best_runs).label("best_runs"), p.c.best_run_seconds]
         base = (select(*columns).select_from(levels_t.outerjoin(p, p.c.level_id == levels_t.c.id)
                                              .outerjoin(v, v.c.level_id == levels_t.c.id)))
         return base, keys
@@ -543,7 +579,7 @@ class Store:
                 "agent_solve_rate": rate(row.agent_solved, row.agent_plays),
                 "best_human_seconds": row.best_human_seconds,
                 "best_human_steps": None if row.best_human_steps is None else int(row.best_human_steps),
-                "has_best_run": int(row.best_runs) > 0,
+                "has_best_run": int(row.best_runs) > 0 and row.best_run_seconds <= row.best_human_seconds + 1e-9,
                 "votes_up": int(row.up), "votes_down": int(row.down), "score": int(row.up) - int(row.down),
             },
         }
@@ -558,6 +594,9 @@ class Store:
             raise Invalid(f"size: expected one of {', '.join(SIZES)}, got {size!r}")
         if not 1 <= limit <= 100:
             raise Invalid("limit: expected 1 to 100")
+        for field, value in (("tag", tag), ("q", q), ("author", author)):
+            if value is not None:  # NUL matched every name on SQLite (C strings end there) and fails on PostgreSQL
+                check_unicode(field, value)
         query, keys = self._select()
         key = keys[sort]
         query = query.add_columns(key.label("sort_key"))

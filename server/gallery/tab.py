@@ -3,8 +3,8 @@
 `GalleryLink(store).attach(manager)` hooks a SessionManager:
 - every new session gets a "Gallery" folder with Save (a modal for name, description and tags) and Open (a modal
   listing the newest levels), plus a link to the /gallery page;
-- `/?level=<id>` opens that level in the tab (`&mode=play` starts playing it); the page's query reaches Python
-  through the /keys hello;
+- `/?level=<id>` opens that level in the tab (`&mode=play` opens it for play: it starts on Space or the first
+  control key); the page's query reaches Python through the /keys hello;
 - every finished play of a level that is in the gallery is recorded (solved, steps, seconds of simulated time, so
   pauses and a slow machine do not change a player's time), as kind "agent" when an agent played it; with the
   server's PlayRecorder, a human solve that beats the level's best keeps its recording (server.gallery.runs);
@@ -140,7 +140,7 @@ class GalleryLink:
             return
         mode = (params.get("mode") or [""])[0]
         if mode == "play":
-            session.play()
+            session.play(wait=True)  # the player starts it with Space or the first control key
         elif mode == "replay":
             self.replay_best_run(session, level_id)
 

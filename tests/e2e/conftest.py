@@ -43,6 +43,19 @@ def browser():
         browser.close()
 
 
+def wait_js(page, expression: str, timeout: float = 60.0) -> None:
+    """Wait until `expression` is truthy in the page. Polls page.evaluate (the DevTools protocol, which the page's
+    Content-Security-Policy does not govern): page.wait_for_function evaluates its predicate with eval inside
+    the page, which the server's policy (no 'unsafe-eval', server/web_security.py) rightly refuses."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{expression!r} still false after {timeout} s")
+        page.wait_for_timeout(50)
+
+
 def canvas_box(page) -> dict:
     """The page box of viser's 3D canvas (the largest canvas; the control panel is docked beside it)."""
     return page.evaluate("""() => {
@@ -60,10 +73,12 @@ class Tab:
         self.context = browser.new_context(viewport={"width": width, "height": height}, accept_downloads=True)
         self.page = self.context.new_page()
         self.requests: list[str] = []
+        self.csp_violations: list[str] = []  # server/web_security.py's policy must let the app run
         self.page.on("request", lambda request: self.requests.append(request.url))
         self.page.on("websocket", lambda ws: self.requests.append(ws.url))
+        self.watch_csp(self.page)
         self.page.goto(app.url)
-        self.page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(self.page, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         nonce = self.page.get_attribute("#kinetix-session", "data-nonce")
         self.session = app.manager.session_by_nonce(nonce)
         assert self.session is not None
@@ -93,9 +108,15 @@ class Tab:
         clip = {"x": 0, "y": top, "width": width or size["width"], "height": height or size["height"] - top}
         return self.page.screenshot(clip=clip, timeout=60_000)
 
+    def watch_csp(self, page) -> None:
+        """Collect the Content-Security-Policy violations Chromium reports on `page` (as console messages)."""
+        page.on("console", lambda message: self.csp_violations.append(message.text)
+                if "Content Security Policy" in message.text else None)
+
     def assert_local_only(self) -> None:
         hosts = {urlparse(url).hostname for url in self.requests if not url.startswith(("blob:", "data:"))}
         assert hosts == {"127.0.0.1"}, self.requests
+        assert self.csp_violations == []
 
     def close(self) -> None:
         self.context.close()

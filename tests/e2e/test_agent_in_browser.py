@@ -12,7 +12,7 @@ from PIL import Image
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab, canvas_box
+from tests.e2e.conftest import Tab, canvas_box, wait_js
 from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
@@ -39,7 +39,7 @@ def test_watch_agent_from_a_gallery_card_and_race_from_the_agent_folder(browser,
         card = gallery.locator("article.card", has_text="E2E agent watch")
         card.wait_for(timeout=30_000)
         card.locator("a.watch").click()
-        gallery.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(gallery, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         nonce = gallery.get_attribute("#kinetix-session", "data-nonce")
         watcher = app.manager.session_by_nonce(nonce)
         _wait(lambda: watcher.gallery_id == level_id)
@@ -52,6 +52,9 @@ def test_watch_agent_from_a_gallery_card_and_race_from_the_agent_folder(browser,
         gallery.get_by_role("button", name="Race the agent", exact=True).click()
         _wait(lambda: watcher.player == "race")
         race = watcher.controller
+        _wait(lambda: watcher.mode == "ready")  # both sides wait for the human's first key
+        gallery.mouse.click(300, 300)  # focus the canvas (clicks do nothing while playing)
+        gallery.keyboard.press("Space")
         _wait(lambda: race.winner is not None, timeout=120)
         assert race.winner == "tie"  # nobody presses anything and the ball falls onto the goal on both sides
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1 and app.store.stats(level_id)["agent_plays"] == 2)

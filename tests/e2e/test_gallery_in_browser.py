@@ -8,7 +8,7 @@ import pytest
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab
+from tests.e2e.conftest import Tab, wait_js
 from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
@@ -34,15 +34,21 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         page, session = tab.page, tab.session
         page.get_by_role("button", name="Save to gallery", exact=True).click()
         dialog = page.get_by_role("dialog")
-        dialog.locator("input").first.fill("E2E <i>falling</i> win")
+        # Every field of the dialog is found by its label (viser's labels tied to the inputs by labels.js).
+        dialog.get_by_label("Name", exact=True).fill("E2E <i>falling</i> win")
+        dialog.get_by_label("Description", exact=True).fill("a ball falls")
+        dialog.get_by_label("Tags (comma-separated)", exact=True).fill("e2e, falls")
         dialog.get_by_role("button", name="Save", exact=True).click()
         _wait(lambda: session.gallery_id is not None)
         level_id = session.gallery_id
+        saved = app.store.get_level(level_id)
+        assert (saved["description"], saved["tags"]) == ("a ball falls", ["e2e", "falls"])
         # The author token the save issued reaches the page's localStorage, where the gallery page reads it.
         _wait(lambda: page.evaluate("localStorage.getItem('kinetix.author_token')") == session.author_token)
 
         gallery = tab.context.new_page()
         gallery.on("request", lambda request: tab.requests.append(request.url))
+        tab.watch_csp(gallery)
         gallery.goto(app.url + "gallery")
         card = gallery.locator("article.card", has_text="E2E <i>falling</i> win")
         card.wait_for(timeout=30_000)
@@ -50,10 +56,13 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         assert card.locator(".plays").inner_text() == "0"
 
         card.locator("a.play").click()
-        gallery.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(gallery, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         nonce = gallery.get_attribute("#kinetix-session", "data-nonce")
         player = app.manager.session_by_nonce(nonce)
         _wait(lambda: player.gallery_id == level_id)
+        _wait(lambda: player.mode == "ready")  # opened for play: it waits for the player's first key
+        gallery.mouse.click(300, 300)  # focus the canvas (clicks do nothing while playing)
+        gallery.keyboard.press("Space")
         _wait(lambda: player.mode == "ended")
         assert player._result == "solved"
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1)
@@ -63,6 +72,38 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         card.wait_for(timeout=30_000)
         assert card.locator(".plays").inner_text() == "1"
         assert card.locator(".human").inner_text() == "100%"
+
+        # A vote from the page passes the JSON and Origin checks, twice counts once (the voter cookie), and the
+        # page's author token (from the save) is the voter.
+        card.locator(".up").click()
+        _wait(lambda: app.store.stats(level_id)["votes_up"] == 1)
+        card = gallery.locator("article.card", has_text="E2E <i>falling</i> win")
+        card.locator(".up").click()  # toggles the vote off: value 0
+        _wait(lambda: app.store.stats(level_id)["votes_up"] == 0)
+        gallery.locator("article.card", has_text="E2E <i>falling</i> win").locator(".up").click()
+        _wait(lambda: app.store.stats(level_id)["votes_up"] == 1)
+        assert gallery.locator("#status").inner_text() == ""  # no "Vote failed"
+
+        # A visitor without an author token votes as the voter cookie the server issues (HttpOnly: the page's
+        # scripts cannot read it); voting again from the same browser changes that one vote.
+        visitor = tab.context.browser.new_context()
+        try:
+            page = visitor.new_page()
+            tab.watch_csp(page)
+            page.on("request", lambda request: tab.requests.append(request.url))
+            page.goto(app.url + "gallery")
+            theirs = page.locator("article.card", has_text="E2E <i>falling</i> win")
+            theirs.locator(".up").click()
+            _wait(lambda: app.store.stats(level_id)["votes_up"] == 2)
+            cookie = next(c for c in visitor.cookies() if c["name"] == "kinetix_voter")
+            assert cookie["httpOnly"] and cookie["sameSite"] == "Strict" and cookie["path"] == "/api"
+            assert page.evaluate("document.cookie") == "" and page.evaluate(
+                "localStorage.getItem('kinetix.author_token')") is None
+            page.locator("article.card", has_text="E2E <i>falling</i> win").locator(".down").click()
+            _wait(lambda: app.store.stats(level_id)["votes_down"] == 1)
+            assert app.store.stats(level_id)["votes_up"] == 1  # the visitor's up-vote became their down-vote
+        finally:
+            visitor.close()
         tab.assert_local_only()
     finally:
         tab.close()

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from server.play import action_from_keys
 from tests.e2e.conftest import LEVELS, Tab
 from tests.server.conftest import running_app, wait_until
 
@@ -47,7 +46,7 @@ def test_arrow_right_drives_the_motor_and_release_stops_it(browser, app):
         still = _pixels(tab.canvas_png(300, 260))  # the ground and the car, away from the HUD text at the top
         page.keyboard.down("ArrowRight")
         _wait(lambda: "ArrowRight" in session.held)
-        assert action_from_keys(session.held)[0] == 2  # motor binding 0 driven at -1
+        assert session.keys_action()[0] == 1  # car right's wheels are joint body a: clockwise is +1 (value 1)
         # The car moves on the canvas; on a loaded 2-core machine the browser can lag, so look for up to 20 s.
         deadline = time.monotonic() + 20
         while np.abs(_pixels(tab.canvas_png(300, 260)) - still).sum() <= 10_000:
@@ -55,7 +54,7 @@ def test_arrow_right_drives_the_motor_and_release_stops_it(browser, app):
             time.sleep(0.5)
         page.keyboard.up("ArrowRight")
         _wait(lambda: not session.held)
-        assert not action_from_keys(session.held).any()  # no key held: the motor is no longer driven
+        assert not session.keys_action().any()  # no key held: the motor is no longer driven
         page.keyboard.press("Space")
         _wait(lambda: session.mode == "edit")
         tab.assert_local_only()

@@ -10,7 +10,7 @@ from viser_client import KeysSocket, ViserTestClient, session_nonce
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab
+from tests.e2e.conftest import Tab, wait_js
 from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
@@ -32,7 +32,10 @@ def _solve(app, level_id: str) -> None:
     """A protocol-level tab plays the level to its win, so the gallery keeps the run."""
     client = ViserTestClient(app.viser.get_port())
     try:
-        keys = KeysSocket(app.port, session_nonce(client), query=f"?level={level_id}&mode=play")
+        nonce = session_nonce(client)
+        keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
+        _wait(lambda: app.manager.session_by_nonce(nonce).mode == "ready")  # it waits for the first key
+        keys.down("Space")
         _wait(lambda: app.store.stats(level_id)["has_best_run"], timeout=60)
         keys.close()
     finally:
@@ -57,7 +60,7 @@ def test_watch_best_run_opens_the_replay_and_its_frames_change(browser, app):
         button.click()
         # keys.js adds &websocket=; 60 s as below: the server may still be compiling on a cold cache
         gallery.wait_for_url(f"**/?level={level_id}&mode=replay*", timeout=60_000)
-        gallery.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(gallery, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         session = app.manager.session_by_nonce(gallery.get_attribute("#kinetix-session", "data-nonce"))
         _wait(lambda: session.mode == "replay" and session.replay is not None)
         replay = session.replay
@@ -68,6 +71,13 @@ def test_watch_best_run_opens_the_replay_and_its_frames_change(browser, app):
         _wait(lambda: replay.shown_step == -1)
         time.sleep(0.5)
         first = gallery.screenshot(timeout=60_000)
+        # The slider (named by its label) takes arrow keys when it has the focus; its value counts steps done.
+        slider = gallery.get_by_role("slider", name="Replay step")
+        slider.focus()
+        gallery.keyboard.press("ArrowRight")
+        _wait(lambda: replay.shown_step == 0)
+        wait_js(gallery, "document.querySelector('[role=slider]').getAttribute('aria-valuenow') === '1'")
+        assert slider.get_attribute("aria-valuemax") == str(replay.last + 1)
         replay.seek(replay.last)
         _wait(lambda: replay.shown_step == replay.last)
         time.sleep(0.5)
@@ -86,7 +96,7 @@ def test_keyboard_play_then_download_recording_gives_the_browser_a_valid_file(br
     try:
         page = tab.page
         page.goto(app.url + f"?level={level_id}")
-        page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
+        wait_js(page, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         session = app.manager.session_by_nonce(page.get_attribute("#kinetix-session", "data-nonce"))
         _wait(lambda: session.gallery_id == level_id)
         page.mouse.click(900, 400)  # focus the page

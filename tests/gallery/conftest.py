@@ -62,7 +62,7 @@ def client(store: Store):
 
     from server.gallery.app import create_gallery_app
 
-    with TestClient(create_gallery_app(store, admin_token=ADMIN)) as c:
+    with TestClient(create_gallery_app(store, admin_token=ADMIN), base_url="http://localhost") as c:
         yield c
 
 

@@ -56,7 +56,7 @@ def test_kinetix_format_is_accepted(client):
     assert client.get(f"/api/levels/{made['id']}").json()["level"]["format_version"] == 1
 
 
-def test_pagination_sorts_filters_and_search(client):
+def test_pagination_sorts_filters_and_search(client, store):
     ids = [create(client, f"level {i}", tags=["even" if i % 2 == 0 else "odd"])["id"] for i in range(5)]
     seen, cursor = [], None
     while True:
@@ -72,9 +72,9 @@ def test_pagination_sorts_filters_and_search(client):
     assert client.get("/api/levels?size=s").json()["items"] == []
     assert len(client.get("/api/levels?size=m").json()["items"]) == 5
     # played: level 2 has most plays; hardest: level 1 (0 % solved) first, unplayed last; top: level 4 voted up
-    for _ in range(3):
-        client.post(f"/api/levels/{ids[2]}/plays", json={"kind": "human", "solved": True, "steps": 5, "seconds": 1})
-    client.post(f"/api/levels/{ids[1]}/plays", json={"kind": "human", "solved": False, "steps": 5, "seconds": 1})
+    for _ in range(3):  # plays come from the server's own sessions (a library call), never from the API
+        store.record_play(ids[2], "human", solved=True, steps=5, seconds=1)
+    store.record_play(ids[1], "human", solved=False, steps=5, seconds=1)
     client.post(f"/api/levels/{ids[4]}/vote", json={"value": 1})
     client.post(f"/api/levels/{ids[0]}/vote", json={"value": -1})
     assert client.get("/api/levels?sort=played").json()["items"][0]["id"] == ids[2]
@@ -116,25 +116,23 @@ def test_update_delete_token_rules(client):
 
 
 def test_votes_one_per_token(client):
-    level_id = create(client)["id"]
-    first = client.post(f"/api/levels/{level_id}/vote", json={"value": 1}).json()
-    token = first["author_token"]
+    made = create(client)
+    level_id, token = made["id"], made["author_token"]
+    first = client.post(f"/api/levels/{level_id}/vote", json={"value": 1}, headers=auth(token)).json()
     assert (first["up"], first["down"]) == (1, 0)
     for value in (1, 1, -1):
         result = client.post(f"/api/levels/{level_id}/vote", json={"value": value}, headers=auth(token)).json()
-    assert (result["up"], result["down"], result["score"]) == (0, 1, -1) and result.get("author_token") is None
+    assert (result["up"], result["down"], result["score"]) == (0, 1, -1) and "author_token" not in result
     assert client.post(f"/api/levels/{level_id}/vote", json={"value": 0}, headers=auth(token)).json()["down"] == 0
     assert client.get(f"/api/levels/{level_id}/stats").json()["votes_down"] == 0
 
 
-def test_plays_and_stats(client):
+def test_plays_and_stats(client, store):
     level_id = create(client)["id"]
     plays = [("human", True, 100, 3.5), ("human", True, 80, 2.5), ("human", False, 300, 9.0), ("agent", True, 50, 1),
              ("agent", False, 256, 4)]
-    for kind, solved, steps, seconds in plays:
-        r = client.post(f"/api/levels/{level_id}/plays", json={"kind": kind, "solved": solved, "steps": steps,
-                                                                "seconds": seconds})
-        assert r.status_code == 201 and isinstance(r.json()["id"], int)
+    for kind, solved, steps, seconds in plays:  # as the server's sessions record them (server.gallery.tab)
+        assert isinstance(store.record_play(level_id, kind, solved=solved, steps=steps, seconds=seconds), int)
     stats = client.get(f"/api/levels/{level_id}/stats").json()
     assert stats["plays"] == 5 and stats["human_plays"] == 3 and stats["human_solved"] == 2
     assert stats["human_solve_rate"] == pytest.approx(2 / 3) and stats["agent_solve_rate"] == 0.5
@@ -190,21 +188,21 @@ def test_unknown_ids_and_bad_inputs(client, store):
     for method, path, body in [("get", "/api/levels/nope", None), ("get", "/api/levels/nope/thumbnail.png", None),
                                ("get", "/api/levels/nope/stats", None), ("put", "/api/levels/nope", {"name": "x"}),
                                ("delete", "/api/levels/nope", None), ("post", "/api/levels/nope/vote", {"value": 1}),
-                               ("post", "/api/levels/nope/plays",
-                                {"kind": "human", "solved": True, "steps": 1, "seconds": 1}),
                                ("get", "/api/levels/..%2F..%2Fetc%2Fpasswd", None)]:
         headers = auth(ADMIN) if method in ("put", "delete") else {}
         response = client.request(method, path, json=body, headers=headers)
         assert response.status_code == 404, (method, path, response.text)
         assert "no level" in response.json()["detail"] or response.status_code == 404
-    plays = f"/api/levels/{level_id}/plays"
-    for body, message in [({"kind": "robot", "solved": True, "steps": 1, "seconds": 1}, "kind"),
-                          ({"kind": "human", "solved": 1, "steps": 1, "seconds": 1}, "solved"),
-                          ({"kind": "human", "solved": True, "steps": -1, "seconds": 1}, "steps"),
-                          ({"kind": "human", "solved": True, "steps": 1, "seconds": -1}, "seconds"),
-                          ({"kind": "human", "solved": True, "steps": 1}, "missing")]:
-        response = client.post(plays, json=body)
-        assert response.status_code == 422 and message in response.json()["detail"]
+    from server.gallery.store import Invalid
+
+    for kwargs, message in [(dict(kind="robot", solved=True, steps=1, seconds=1), "kind"),
+                            (dict(kind="human", solved=1, steps=1, seconds=1), "solved"),
+                            (dict(kind="human", solved=True, steps=-1, seconds=1), "steps"),
+                            (dict(kind="human", solved=True, steps=1, seconds=-1), "seconds"),
+                            (dict(kind="human", solved=True, steps=1, seconds=float("nan")), "seconds")]:
+        kind = kwargs.pop("kind")
+        with pytest.raises(Invalid, match=message):
+            store.record_play(level_id, kind, **kwargs)
     for value in (2, "1", True, None):
         assert client.post(f"/api/levels/{level_id}/vote", json={"value": value}).status_code == 422
     assert client.get("/api/levels?sort=worst").status_code == 422

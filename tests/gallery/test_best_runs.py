@@ -52,6 +52,22 @@ def test_only_the_best_human_solve_keeps_its_recording(runs, tmp_path):
     assert runs.best_run_file(level_id).name == fewer
 
 
+def test_a_faster_unrecorded_solve_hides_the_kept_run_so_best_time_and_best_run_agree(runs, tmp_path):
+    level_id, _ = runs.store.create_level("lvl", level_doc())
+    kept = _solve(runs, level_id, tmp_path, 48, 1.6)
+    assert runs.best_run_file(level_id).name == kept
+    # A faster human solve without a recording (a --no-record server, a recording that failed): the kept run did
+    # not set the best time any more, so it is not offered as the best run.
+    runs.store.record_play(level_id, "human", solved=True, steps=38, seconds=38 / 30)
+    stats = runs.store.stats(level_id)
+    assert stats["best_human_steps"] == 38
+    assert runs.best_run_file(level_id) is None and stats["has_best_run"] is False
+    # A recorded solve as fast as the best time is the best run again.
+    tie = _solve(runs, level_id, tmp_path, 38, 38 / 30)
+    assert tie is not None and runs.best_run_file(level_id).name == tie
+    assert runs.store.stats(level_id)["has_best_run"] is True
+
+
 def test_orphans_and_other_levels(runs, tmp_path):
     a, _ = runs.store.create_level("a", level_doc())
     b, _ = runs.store.create_level("b", level_doc())
@@ -72,7 +88,7 @@ def test_api_serves_the_best_run_or_a_404_with_a_message(runs, tmp_path):
     from server.gallery.app import create_gallery_app
 
     level_id, _ = runs.store.create_level("lvl", level_doc())
-    with TestClient(create_gallery_app(runs.store)) as client:
+    with TestClient(create_gallery_app(runs.store), base_url="http://localhost") as client:
         missing = client.get(f"/api/levels/{level_id}/best-run.mcap")
         assert missing.status_code == 404 and "no recorded best run" in missing.json()["detail"]
         assert client.get("/api/levels/nope/best-run.mcap").status_code == 404

@@ -130,12 +130,12 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start_server(db: Path, port: int) -> subprocess.Popen:
+def _start_server(db: Path, port: int, *extra: str) -> subprocess.Popen:
     import urllib.request
 
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     server = subprocess.Popen([sys.executable, "-m", "server.gallery.app", "--db", str(db), "--port", str(port),
-                               "--no-seed"], env=env)
+                               "--no-seed", *extra], env=env)
     for _ in range(300):
         try:
             urllib.request.urlopen(f"http://127.0.0.1:{port}/api/levels", timeout=1)
@@ -153,22 +153,25 @@ def test_http_server_killed_during_writes_keeps_every_answered_write(tmp_path: P
     store = Store(f"sqlite:///{db}", seed_dir=None)
     fake = SavedLevel("m", json.dumps(level_doc()), b"png")  # no renderer needed: only plays are written
     level_id, _ = store.create_level("target", {}, prepared=fake)
+    with store._write() as conn:  # voters: each answered up-vote is one new row (plays cannot be posted)
+        voters = [store.new_author(conn)[1] for _ in range(2000)]
     store.close()
     port = _free_port()
-    server = _start_server(db, port)
-    answered: list[int] = []
+    server = _start_server(db, port, "--write-limit", "0")  # many writes from one address, on purpose
+    answered: list[str] = []
     stop = threading.Event()
 
     def writer() -> None:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
-            while not stop.is_set():
+            while not stop.is_set() and voters:
+                token = voters.pop()
                 try:
-                    r = http.post(f"/api/levels/{level_id}/plays",
-                                  json={"kind": "human", "solved": True, "steps": 1, "seconds": 1.0})
+                    r = http.post(f"/api/levels/{level_id}/vote", json={"value": 1},
+                                  headers={"Authorization": f"Bearer {token}"})
                 except httpx.HTTPError:
                     return  # the server is gone
-                assert r.status_code == 201, r.text
-                answered.append(r.json()["id"])
+                assert r.status_code == 200, r.text
+                answered.append(token)
 
     threads = [threading.Thread(target=writer) for _ in range(8)]
     for t in threads:
@@ -182,12 +185,12 @@ def test_http_server_killed_during_writes_keeps_every_answered_write(tmp_path: P
         t.join()
     store = Store(f"sqlite:///{db}", seed_dir=None)
     assert store.integrity_check() == []
-    plays = store.stats(level_id)["plays"]
-    assert plays >= len(answered)  # every answered write survived; at most the unanswered in-flight ones extra
+    votes = store.stats(level_id)["votes_up"]
+    assert votes >= len(answered)  # every answered write survived; at most the unanswered in-flight ones extra
     store.close()
     server = _start_server(db, port)  # a restart serves the same data
     try:
-        assert httpx.get(f"http://127.0.0.1:{port}/api/levels/{level_id}/stats").json()["plays"] == plays
+        assert httpx.get(f"http://127.0.0.1:{port}/api/levels/{level_id}/stats").json()["votes_up"] == votes
     finally:
         server.kill()
         server.wait()

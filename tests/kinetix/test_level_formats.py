@@ -295,15 +295,14 @@ def test_export_collision_matrix_excludes_jointed_bodies(robot):
     assert len(data["env_state"]["acc_cc_manifolds"]) == C * (C - 1) // 2
 
 
-def test_eight_vertex_polygon_cannot_be_exported_to_kinetix():
+def test_eight_vertex_polygon_exports_to_kinetix_with_eight_vertex_slots():
     sim = empty_level("l").sim
     octagon = [[math.cos(a), math.sin(a)] for a in np.arange(8) * math.pi / 4]
     sim, _ = scene.add_polygon(sim, (2.5, 2.0), np.array(octagon) * 0.3)
-    file = LevelFile(make_level(sim), size=SIZES["l"])
-    with pytest.raises(LevelError, match=r"bodies\[4\] has 8 vertices; the Kinetix format allows at most 4"):
-        to_document(file, "kinetix")
-    assert_bitwise_equal(load_level(to_document(load_level(to_document(file)))).level,
-                         load_level(to_document(file)).level)
+    file = load_level(to_document(LevelFile(make_level(sim), size=SIZES["l"])))
+    data = to_document(file, "kinetix")
+    assert data["static_env_params"]["max_polygon_vertices"] == 8
+    assert_bitwise_equal(load_level(data).level, file.level)
 
 
 def test_kinetix_export_needs_the_walls_first():

@@ -125,14 +125,13 @@ def test_convert_resizes_and_leaves_the_output_untouched_on_error(capsys, tmp_pa
     before = out.read_text()
     code, _, err = run_cli(capsys, "convert", str(bad_path), str(out), "--to", "ours")
     assert code == 1 and "bodies[4].radius: must be > 0" in err
-    sim = empty_level("l").sim
-    sim, _ = scene.add_polygon(sim, (2.0, 2.0), 0.3 * np.array([[np.cos(a), np.sin(a)] for a in np.arange(8) * 0.785]))
-    eight = tmp_path / "octagon.json"
-    eight.write_text(dumps(LevelFile(make_level(sim))))
-    code, _, err = run_cli(capsys, "convert", str(eight), str(out))
-    assert code == 1 and "allows at most 4" in err
+    sim = scene.remove_body(empty_level("l").sim, 2)  # no right wall: the public format needs its 4 walls
+    wallless = tmp_path / "wallless.json"
+    wallless.write_text(dumps(LevelFile(make_level(sim))))
+    code, _, err = run_cli(capsys, "convert", str(wallless), str(out))
+    assert code == 1 and "in polygon slots 0-3" in err
     assert out.read_text() == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "octagon.json", "out.json", "wheel.json",
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "out.json", "wallless.json", "wheel.json",
                                                         "wheel.kinetix.json"]
 
 

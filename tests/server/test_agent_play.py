@@ -18,6 +18,7 @@ from viser_client import KeysSocket
 from kinetix.agents.policy import Policy
 from kinetix.formats import ThrusterSpec, build
 from kinetix.levels import to_document
+from kinetix.recording import read_recording
 from server.agent_play import AgentRunner, _overlay_box, action_text
 from server.agent_tab import BEST, NEWEST, AgentLink
 from server.gallery.tab import GalleryLink
@@ -120,14 +121,12 @@ def _race(app, make_client, *, agent_policy, hold_thruster: bool):
     GalleryLink(app.store).open(session, level_id)
     keys = KeysSocket(app.port, nonce)
     try:
-        with session.lock:  # no step can happen until the human's keys are in place
-            race = app.agents.race(session, policy=agent_policy)
-            session.toggle_pause()
-        if hold_thruster:
-            keys.down("Digit1")
-            _wait(lambda: "Digit1" in session.held)
+        race = app.agents.race(session, policy=agent_policy)
+        assert session.mode == "ready", "a race waits for the human's first key"
+        time.sleep(0.3)
+        assert session._steps == 0 and race.agent.steps == 0, "neither side moved before the first key"
         start = client.count()
-        session.toggle_pause()
+        keys.down("Digit1" if hold_thruster else "Space")  # the first control key starts the race and acts at once
         _wait(lambda: race.winner is not None, timeout=120)
         assert race.recorded.wait(30)
         _wait(lambda: len(client.frames(start)) > 0)
@@ -143,6 +142,10 @@ def test_race_human_wins_against_an_agent_that_misses_and_both_plays_are_recorde
     assert race.agent.result is None and race.agent.steps == 9, "the agent stepped in lockstep"
     stats = app.store.stats(level_id)
     assert (stats["human_plays"], stats["human_solved"], stats["agent_plays"], stats["agent_solved"]) == (1, 1, 1, 0)
+    # The race set the best time, and its recording is the best run (it used to be recorded without a file).
+    assert stats["best_human_steps"] == 9 and stats["has_best_run"]
+    best = read_recording(app.agents.runs.best_run_file(level_id), frames=False)
+    assert best.num_steps == 9 and best.solved and best.metadata["player"] == "race"
     _wait(lambda: "You win!" in _status(client))
     _wait(lambda: session.mode == "ended")
     frame = session.render()

@@ -73,6 +73,8 @@ def test_level_link_opens_and_plays_and_the_finished_play_is_recorded(app, make_
     try:
         _wait(lambda: session.gallery_id == level_id)
         assert session.author_token == token  # the browser's token arrives with the hello
+        _wait(lambda: session.mode == "ready")  # opened for play: it waits for the player's first key
+        keys.down("Space")
         _wait(lambda: session.mode == "ended")
         assert session._result == "solved"
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1)
@@ -80,6 +82,21 @@ def test_level_link_opens_and_plays_and_the_finished_play_is_recorded(app, make_
         assert stats["human_solved"] == 1 and stats["agent_plays"] == 0
         # Simulated seconds: steps x frame skip x dt, whatever the machine's speed.
         assert stats["best_human_seconds"] == pytest.approx(stats["best_human_steps"] * 2 / 60)
+    finally:
+        keys.close()
+
+
+def test_ctrl_z_right_after_a_level_link_keeps_the_opened_level(app, make_client):
+    level_id, _ = app.store.create_level("falling win", _falling_win_document())
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce, query=f"?level={level_id}")
+    try:
+        _wait(lambda: session.gallery_id == level_id)
+        opened = session.editor.export("ours")
+        seq = keys.down("KeyZ", "z", ctrl=True)
+        _wait(lambda: session.last_key_seq >= seq)
+        assert session.editor.export("ours") == opened  # not the blank level the tab started with
     finally:
         keys.close()
 

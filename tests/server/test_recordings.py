@@ -19,6 +19,7 @@ from viser_client import KeysSocket
 from kinetix.formats import build
 from kinetix.levels import to_document
 from kinetix.recording import read_recording, recorded_level, verify
+from server.play import action_from_keys
 from server.session import Controller
 from tests.server.conftest import LEVELS, running_app, session_of, wait_until
 
@@ -106,7 +107,8 @@ def test_a_keyboard_play_is_recorded_and_re_simulates_bitwise(app, make_client):
     assert recording.num_steps == steps and finished.steps == steps
     assert recording.metadata["player"] == "human" and recording.metadata["seed"] == "0"
     assert recording.metadata["project_version"] and recording.env["frame_skip"] == 2
-    assert (recording.actions[:, 0] == 2).sum() >= 15, "ArrowRight drives motor binding 0 at -1 (value 2)"
+    right = action_from_keys({"ArrowRight"}, session.clockwise)[0]  # the level's clockwise turn of binding 0
+    assert (recording.actions[:, 0] == right).sum() >= 15, "ArrowRight drove motor binding 0"
     assert len(recording.frames) >= 2 and recording.frames[0][:2] == b"\xff\xd8"  # JPEG frames
     assert np.all(np.diff(recording.frame_times) >= 0.1 - 1e-6), "frames at most 10 Hz"
     assert recording.step_times[-1] == pytest.approx(steps * 2 / 60), "simulated time"
@@ -226,10 +228,15 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
     assert replay.step < recording.num_steps - 1, "paused before the end (the run lasts 2 s at 1x)"
     _wait(lambda: any(e.get("label") == "Play replay" for e in client.gui().values()))
     slider = client.find_gui("Replay step")
-    assert slider["max"] == recording.num_steps - 1
+    # The slider counts steps done, 0 (the start) to N, like the HUD's "step k/N"; recording step k-1 is shown.
+    assert (slider["min"], slider["max"]) == (0, recording.num_steps)
+    folders = [e for e in client.gui().values() if e["type"] == "GuiFolderMessage"]
+    timeline = next(e for e in folders if e["label"] == "Replay")
+    assert timeline["visible"] and timeline["order"] < min(  # at the top of the panel, above the editor's folders
+        e["order"] for e in folders if e["uuid"] != timeline["uuid"])
     for step in (3, recording.num_steps - 1, 0):
         before = client.count()
-        client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": step})
+        client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": step + 1})
         _wait(lambda step=step: replay.shown_step == step)
         client.wait_frame(before)
         # What is drawn is the recorded state of that step (no re-simulation).
@@ -237,9 +244,23 @@ def test_replay_pushes_frames_and_scrubbing_shows_that_steps_state(app, make_cli
         assert np.array_equal(replay._scene.position, np.asarray(level.sim.bodies.position))
         assert np.array_equal(replay._scene.angle, np.asarray(level.sim.bodies.angle))
         assert np.array_equal(replay._scene.position[recording.bodies], recording.position[step])
+    # ←/→ step the replay one step (Shift: 10), and the slider follows; at the start it stays at 0.
+    keys = KeysSocket(app.port, nonce)
+    try:
+        keys.down("ArrowRight")
+        _wait(lambda: replay.shown_step == 1)
+        _wait(lambda: client.find_gui("Replay step")["value"] == 2)
+        keys.up("ArrowRight")
+        keys.down("ArrowLeft", shift=True)
+        _wait(lambda: replay.shown_step == -1)
+        _wait(lambda: client.find_gui("Replay step")["value"] == 0)
+        keys.up("ArrowLeft", shift=True)
+    finally:
+        keys.close()
+    assert session.mode == "replay" and not replay.playing
     first = _frame(client.frames()[-1])
     before = client.count()
-    client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": recording.num_steps - 1})
+    client.send("GuiUpdateMessage", uuid=slider["uuid"], updates={"value": recording.num_steps})
     _wait(lambda: replay.shown_step == recording.num_steps - 1)
     last = _frame(client.wait_frame(before))
     assert np.abs(first - last).mean() > 0.5, "the car moved between the first and the last step"
@@ -323,6 +344,8 @@ def _solve_by_link(app, make_client, level_id: str):
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
     try:
+        _wait(lambda: session.mode == "ready")  # opened for play: it starts with the player's first key
+        keys.down("Space")
         _wait(lambda: session.mode == "ended")
         assert session._result == "solved"
         _wait(lambda: app.store.stats(level_id)["human_plays"] >= 1)

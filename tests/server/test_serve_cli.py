@@ -6,8 +6,11 @@ import os
 import signal
 import subprocess
 import sys
+import urllib.error
 import urllib.request
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -16,7 +19,7 @@ def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
     # --data keeps the test away from the user's own gallery (~/.local/share/kinetix).
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--warm", "none",
-                                "--data", str(tmp_path)],
+                                "--data", str(tmp_path), "--allowed-hosts", "kinetix.test"],
                                cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         lines = []
@@ -27,7 +30,16 @@ def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
         url = lines[-1].split()[-1]
         assert url.startswith("http://127.0.0.1:") and url.endswith("/"), lines
         assert sum("http" in line for line in lines) == 1  # one URL only (viser's internal one is not shown)
-        assert "keys.js" in urllib.request.urlopen(url, timeout=10).read().decode()
+        page = urllib.request.urlopen(url, timeout=10)
+        assert "keys.js" in page.read().decode()
+        assert page.headers["X-Content-Type-Options"] == "nosniff"  # server/web_security.py
+        # --allowed-hosts reached the server: its name is served, any other name is refused (DNS rebinding).
+        assert urllib.request.urlopen(urllib.request.Request(url + "health", headers={"Host": "kinetix.test:1"}),
+                                      timeout=10).status == 200
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(urllib.request.Request(url + "health", headers={"Host": "rebound.example"}),
+                                   timeout=10)
+        assert refused.value.code == 400
         process.send_signal(signal.SIGINT)
         rest = process.communicate(timeout=30)[0]
         assert process.returncode == 0, rest
@@ -53,8 +65,6 @@ def test_serve_refuses_a_busy_port(tmp_path):
 
 
 def test_serve_parses_the_training_cap_and_refuses_zero(capsys):
-    import pytest
-
     from kinetix.cli import build_parser
 
     args = build_parser().parse_args(["serve", "--max-training-runs", "2"])
@@ -78,3 +88,16 @@ def test_serve_parses_the_training_queue_and_per_client_limits(capsys):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["serve", option, bad])
         assert option.lstrip("-") in capsys.readouterr().err
+
+
+def test_make_serve_passes_args_to_the_server():
+    import shutil
+
+    import pytest
+
+    if shutil.which("make") is None:
+        pytest.skip("no make")
+    # -n prints the commands without running them (nor building .venv).
+    out = subprocess.run(["make", "-n", "serve", "ARGS=--port 9000 --data /tmp/k"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=30, check=True).stdout
+    assert ".venv/bin/kinetix serve --port 9000 --data /tmp/k\n" in out, out

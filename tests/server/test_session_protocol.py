@@ -162,10 +162,51 @@ def test_win_shows_the_result_with_play_again_and_edit(app, make_client):
     _wait(lambda: client.find_gui("Play again").get("visible") is True)
     assert client.find_gui("Edit").get("visible") is True
     client.click_button("Play again")
-    _wait(lambda: session.mode in ("play", "ended") and session._steps < 5)
+    _wait(lambda: session.mode == "ready")  # it waits for the player: nothing moves until Space or a key
+    assert session._steps == 0
+    _wait(lambda: _has_label(client, "Start (Space)"))
+    client.click_button("Start (Space)")
+    _wait(lambda: session.mode in ("play", "ended") and session._steps > 0)
     _wait(lambda: _has_label(client, "Stop (Space)"))
     client.click_button("Stop (Space)")
     _wait(lambda: session.mode == "edit")
+
+
+def test_a_waiting_play_shows_its_start_and_the_first_control_key_starts_and_acts(app, make_client):
+    from server.session import START_HINT
+
+    class FirstAction(PlayListener):
+        actions: list = []
+
+        def play_stepped(self, session, action, state, result) -> None:
+            self.actions.append(np.array(action))
+
+    listener = FirstAction()
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce)
+    app.manager.add_listener(listener)
+    try:
+        start = client.count()
+        session.play(wait=True)  # as the gallery's Play link and Play again open a play
+        assert session.mode == "ready" and session.hud().startswith("READY")
+        ready_frame = _image(client.wait_frame(start))  # its start is drawn, with the hint on the canvas
+        with session.lock:
+            session.mode = "play"  # the same frame without the hint, for comparison
+            playing = session.render()
+            session.mode = "ready"
+        assert START_HINT and np.abs(ready_frame.astype(int) - playing.astype(int)).sum() > 50_000
+        time.sleep(0.5)
+        assert session._steps == 0 and session.mode == "ready", "nothing moves before the player's first key"
+        keys.down("ArrowRight")
+        _wait(lambda: session._steps > 0)
+        assert session.mode in ("play", "ended")
+        assert listener.actions[0][0] != 0, "the key that started the play drove its first step"
+        keys.up("ArrowRight")
+    finally:
+        app.manager.listeners.remove(listener)
+        session.stop()
+        keys.close()
 
 
 def test_pause_and_single_step(app, make_client):

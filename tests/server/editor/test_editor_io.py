@@ -37,9 +37,10 @@ def test_export_import_round_trip(ed, fmt):
     assert int(a.sim.bodies.active.sum()) == int(b.sim.bodies.active.sum()) == 6
     assert a.sim.gravity.tolist() == b.sim.gravity.tolist()
     assert other.spec.joints[0].motor_binding == 2 and other.spec.joints[0].limits is not None
-    assert other.can_undo  # an import is one undoable step
+    assert not other.can_undo  # opened over the untouched blank level: the opened level is the history's base
     other.import_bytes(text.encode(), "my car.json")
     assert other.spec.name == "my car"  # a file without a name is named after the file
+    assert other.can_undo  # opening over an opened level is one undoable step back to it
 
 
 def test_export_is_valid_json_in_both_formats(ed):
@@ -87,14 +88,33 @@ def test_import_public_level(shared_dir):
     assert int(ed.level_file().level.sim.bodies.active.sum()) == int(expected.level.sim.bodies.active.sum())
 
 
-def test_export_refused_for_kinetix_when_polygon_too_big(ed):
+def test_polygon_of_five_vertices_exports_to_kinetix_with_a_note(ed):
     ed.set_tool("polygon")
     for p in [(3.0, 3.0), (4.0, 3.0), (4.5, 3.5), (4.0, 4.0), (3.0, 4.0)]:
         ed.click(*p)
     ed.key("Enter")
-    with pytest.raises(EditorError, match="at most 4"):
-        ed.export("kinetix")
-    assert ed.export("ours")
+    data = json.loads(ed.export("kinetix"))
+    assert data["static_env_params"]["max_polygon_vertices"] == 5
+    assert [e["n_vertices"] for e in data["env_state"]["polygon"] if e["active"]][-1] == 5
+    (note,) = ed.export_notes("kinetix")
+    assert "5-vertex polygon" in note and "first 4 vertices" in note
+    assert ed.export_notes("ours") == []
+    other = Editor()
+    other.import_bytes(ed.export("kinetix").encode())
+    counts = lambda spec: sorted(len(b.vertices or ()) for b in spec.bodies)  # noqa: E731
+    assert counts(other.spec) == counts(ed.spec)
+
+
+def test_opening_a_level_in_a_fresh_editor_is_its_base_and_undo_keeps_it():
+    ed = Editor()
+    ed.import_bytes(sorted((REPO / "levels").glob("*.json"))[0].read_bytes())
+    opened = ed.export("ours")
+    assert not ed.can_undo
+    ed.undo()  # Ctrl+Z right after opening: nothing to undo, the opened level stays
+    assert ed.export("ours") == opened
+    ed.set_gravity(0.0, -5.0)
+    ed.undo()
+    assert ed.export("ours") == opened
 
 
 def test_new_level(ed):

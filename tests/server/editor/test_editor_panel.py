@@ -165,3 +165,45 @@ def test_download_and_upload(setup):
     editor.new_level("l")
     upload(panel, "mine.kinetix.json", kinetix)
     assert len(editor.spec.bodies) == 5 and panel.message.content == ""
+
+
+def test_kinetix_download_of_a_pentagon_says_what_differs_there_in_the_panel(setup):
+    panel, editor, _, downloads = setup
+    editor.set_tool("polygon")
+    for p in [(3.0, 3.0), (4.0, 3.0), (4.5, 3.5), (4.0, 4.0), (3.0, 4.0)]:
+        editor.click(*p)
+    editor.key("Enter")
+    panel.download("kinetix")
+    assert downloads and downloads[-1][0] == "level.kinetix.json"
+    status = panel.file_status.content
+    assert status.startswith("Downloaded level.kinetix.json.") and "**Note:**" in status
+    assert "5-vertex polygon" in status and "first 4 vertices" in status
+    assert panel.message.content == ""  # nothing on the canvas's message line
+
+
+def test_a_download_that_cannot_be_written_gives_the_whole_reason_in_the_panel(setup):
+    import json
+
+    panel, editor, _, downloads = setup
+    level = json.loads(editor.export("ours"))
+    level["bodies"][2]["fixed"] = False  # the right wall no longer fixed: not a public Kinetix level
+    editor.import_bytes(json.dumps(level).encode())
+    panel.download("kinetix")
+    assert not downloads
+    status = panel.file_status.content
+    assert status.startswith("**Cannot download in the Kinetix format:**") and status.endswith("add\\_walls")
+    assert panel.message.content == ""
+
+
+def test_the_panel_offers_the_next_size_when_the_level_is_full(setup):
+    panel, editor, _, _ = setup
+    panel.size.value = "s"
+    editor.set_tool("circle")
+    for x in (1.0, 2.0, 3.0):
+        editor.click(x, 3.0)
+    panel.refresh()
+    button = panel.grow_button
+    assert button.visible and button.label == "Move to size m"
+    button.value = True  # a click
+    assert editor.size.name == "m" and editor.limits()["circles"] == (3, 3)
+    assert not button.visible and panel.size.value == "m"

@@ -148,12 +148,12 @@ def test_overflow_refused_with_message():
     ed.set_tool("circle")
     assert ed.click(1.0, 2.0) is None
     assert ed.click(2.0, 2.0) is None
-    assert ed.click(3.0, 2.0) == "no circle left: 2 of 2 used in size s"
+    assert ed.click(3.0, 2.0).startswith("no circle left: 2 of 2 used in size s")
     assert ed.limits()["circles"] == (2, 2)
     ed.set_tool("revolute")
     ed.set_tool("rectangle")
     ed.click(1.0, 3.5)
-    assert ed.click(3.0, 3.5) == "no polygon left: 5 of 5 used in size s"
+    assert ed.click(3.0, 3.5).startswith("no polygon left: 5 of 5 used in size s")
 
 
 def test_joint_and_thruster_overflow():
@@ -162,10 +162,45 @@ def test_joint_and_thruster_overflow():
     make_pair(ed)
     ed.set_tool("revolute")
     ed.click(1.95, 1.2)
-    assert ed.click(1.95, 1.2) == "no joint left: 1 of 1 used in size s"
+    assert ed.click(1.95, 1.2).startswith("no joint left: 1 of 1 used in size s")
     ed.set_tool("thruster")
     ed.click(1.5, 1.2)
-    assert ed.click(1.5, 1.2) == "no thruster left: 1 of 1 used in size s"
+    assert ed.click(1.5, 1.2).startswith("no thruster left: 1 of 1 used in size s")
+
+
+def test_a_full_level_is_offered_the_next_size_and_moving_there_does_the_refused_edit():
+    ed = Editor(size="m")
+    ed.snapping = False
+    ed.set_tool("polygon")
+    squares = [[(x, 3.0), (x + 0.4, 3.0), (x + 0.4, 3.4), (x, 3.4)] for x in (0.5, 1.5, 2.5)]
+    for square in squares[:2]:
+        for p in square:
+            ed.click(*p)
+        ed.key("Enter")
+    for p in squares[2]:
+        ed.click(*p)
+    ed.key("Enter")
+    assert ed.message == 'no polygon left: 6 of 6 used in size m; "Move to size l" in the panel makes room'
+    assert ed.size_offer == "l" and ed.limits()["polygons"] == (6, 6)
+    assert ed.grow_size() is None
+    assert ed.size.name == "l" and ed.limits()["polygons"] == (7, 12)  # moved, and the third square is drawn
+    assert ed.spec.bodies[-1].position == pytest.approx((2.7, 3.2))
+    assert ed.size_offer is None and ed.message is None
+    ed.undo()  # the square, then the move: two steps
+    assert ed.size.name == "l" and ed.limits()["polygons"] == (6, 12)
+    ed.undo()
+    assert ed.size.name == "m"
+
+
+def test_no_size_is_offered_beyond_l():
+    ed = Editor(size="s")
+    ed.set_size("l")
+    ed.snapping = False
+    ed.set_tool("circle")
+    for x in (0.5, 1.5, 2.5, 3.5):
+        assert ed.click(x, 2.0) is None
+    assert ed.click(4.5, 2.0) == "no circle left: 4 of 4 used in size l" and ed.size_offer is None
+    assert ed.grow_size().startswith("no larger size class")
 
 
 def test_unknown_tool(ed):

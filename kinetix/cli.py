@@ -13,6 +13,10 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
+# kinetix.level.SIZES' names, written out: the CLI parses its arguments before importing JAX
+# (tests/kinetix/test_size_classes.py checks that the two agree).
+SIZES = ("s", "m", "l", "xl")
+
 
 def _no_arguments(parser: argparse.ArgumentParser) -> None:
     pass
@@ -67,9 +71,9 @@ def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_step
     parser.add_argument("--json", action="store_true", help="print results as JSON lines instead of a table")
     parser.add_argument(
         "--sizes",
-        type=comma_list(str, allowed={"s", "m", "l"}),
+        type=comma_list(str, allowed=set(SIZES)),
         default=["s", "m", "l"],
-        help="size classes to measure, comma-separated (default: s,m,l)",
+        help="size classes to measure, comma-separated: s, m, l, xl (default: s,m,l)",
     )
     parser.add_argument(
         "--batches",
@@ -121,8 +125,9 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-training-per-client", type=positive_int, default=1,
                         help="training runs of one person (author identity, else tab) running at once; one more "
                              "may wait (default: 1)")
-    parser.add_argument("--warm", type=comma_list(str, allowed={"s", "m", "l", "none"}), default=["s", "m", "l"],
-                        help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
+    parser.add_argument("--warm", type=comma_list(str, allowed={*SIZES, "none"}), default=["s", "m", "l"],
+                        help="size classes whose play step is compiled before serving (s, m, l, xl), or none (default: "
+                             "s,m,l; another size compiles when first played)")
     parser.add_argument("--no-record", dest="record", action="store_false",
                         help="do not record plays (default: every play is recorded to <data>/recordings)")
     # Web safety (server/web_security.py, server/gallery/limits.py); None keeps the server's defaults.
@@ -147,7 +152,7 @@ def _convert_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="IN", help="level file to read (format detected from its content)")
     parser.add_argument("output", metavar="OUT", help="file to write (replaced atomically)")
     parser.add_argument("--to", choices=["ours", "kinetix"], help="format to write (default: the other one)")
-    parser.add_argument("--size", choices=["s", "m", "l"], help="size class to write (default: the input's)")
+    parser.add_argument("--size", choices=list(SIZES), help="size class to write (default: the input's)")
 
 
 def _play_arguments(parser: argparse.ArgumentParser) -> None:
@@ -170,7 +175,7 @@ def _export_demos_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--in", dest="inputs", nargs="+", required=True, metavar="DIR_OR_FILE",
                         help="recordings (.mcap files, or directories searched for them)")
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
-    parser.add_argument("--size", choices=["s", "m", "l"], help="size class of the observations (default: largest)")
+    parser.add_argument("--size", choices=list(SIZES), help="size class of the observations (default: largest)")
     parser.add_argument("--solved-only", action="store_true", help="keep only recordings that solve their level")
     parser.add_argument("--obs", choices=["entity", "flat", "pixels"], default="flat", help="observation type")
     parser.add_argument("--shard-steps", type=positive_int, default=100_000, help="steps per .npz shard")
@@ -278,7 +283,7 @@ COMMANDS: list[Command] = [
 
 def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print results as JSON lines")
-    parser.add_argument("--sizes", type=comma_list(str, allowed={"s", "m", "l"}), default=["s", "m", "l"],
+    parser.add_argument("--sizes", type=comma_list(str, allowed=set(SIZES)), default=["s", "m", "l"],
                         help="size classes to measure, comma-separated (default: s,m,l)")
     parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
     parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")

@@ -40,8 +40,13 @@ import numpy as np
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
 
-# Scenes with more bodies than this use the broad phase when SolverConfig.broad_phase is None.
+# With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, and
+# so do single scenes (a batch part of one) of more than AUTO_SINGLE_BODIES. Measured on this 2-core
+# machine under load (docs/engine.md): the xl bench scene (80 bodies) at batch 1 took 2.1-2.4 ms a
+# step with it and 3.5-5.0 ms without; at batch 16 both took 70-80 ms, because the candidate list
+# is the union over the batch part and grows to every slot (see capacities).
 AUTO_BODIES = 100
+AUTO_SINGLE_BODIES = 40
 # Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
 # (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).
 CANDIDATES_PER_BODY = 4
@@ -49,8 +54,11 @@ MAX_COLOURS = 32  # colouring rounds; a colour holds up to 2 x candidates / MAX_
 TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)
 
 
-def uses_broad_phase(broad_phase: bool | None, num_bodies: int) -> bool:
-    return num_bodies > AUTO_BODIES if broad_phase is None else bool(broad_phase)
+def uses_broad_phase(broad_phase: bool | None, num_bodies: int, batch: int = 1) -> bool:
+    """Whether a batch part of `batch` scenes of `num_bodies` bodies is stepped with the broad phase."""
+    if broad_phase is not None:
+        return bool(broad_phase)
+    return num_bodies > AUTO_BODIES or (batch == 1 and num_bodies > AUTO_SINGLE_BODIES)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

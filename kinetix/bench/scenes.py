@@ -124,7 +124,7 @@ def build_l(rng: np.random.Generator) -> SimState:
 def build_xl(rng: np.random.Generator) -> SimState:
     """Two cars with thrusters, each carrying a box with a thruster; a pyramid of 36 small boxes between
     them; four chains of five links hanging from the ceiling, two with motors, each ending in a thruster;
-    twelve balls dropped from above onto the pyramid and the cars."""
+    twelve balls thrown sideways from above onto the pyramid and the cars."""
     state = add_walls(empty_state(CAPACITIES["xl"]))
     for x in (0.75 + rng.uniform(-0.1, 0.1), 4.25 + rng.uniform(-0.1, 0.1)):
         state, chassis = _car(state, x, rng)
@@ -147,7 +147,8 @@ def build_xl(rng: np.random.Generator) -> SimState:
             above = body
         state, _ = add_thruster(state, above, (cx, ceiling - 5 * link), angle=0.0, power=0.2)
     for k in range(12):
-        state, _ = add_circle(state, (0.85 + 0.3 * k + rng.uniform(-0.03, 0.03), 2.8), 0.1)
+        state, _ = add_circle(state, (0.85 + 0.3 * k + rng.uniform(-0.03, 0.03), 2.8), 0.1,
+                              velocity=(1.0 if k % 2 else -1.0, 0.0))
     return state
 
 

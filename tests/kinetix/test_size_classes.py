@@ -14,6 +14,7 @@ from jax2d import scene
 from kinetix import cli
 from kinetix.actions import sample_random_action
 from kinetix.env import EnvConfig, make_env
+from kinetix.generate import sample_level
 from kinetix.level import (
     ROLE_GREEN,
     SIZES,
@@ -88,3 +89,13 @@ def test_the_env_steps_an_xl_level_with_random_actions():
     assert np.all(np.isfinite(position))
     ball = file.level.sim.num_polygons
     assert position[ball, 1] < start[ball, 1] - 0.1  # the first ball fell
+
+
+@pytest.mark.slow
+def test_the_generator_makes_xl_levels_that_load_back():
+    level = sample_level(jax.random.key(3), "xl")
+    assert level.sim.num_polygons == 64 and level.sim.num_circles == 16
+    file = load_level(json.loads(dumps(LevelFile(level, LevelParams(), size_class("xl")))))
+    assert file.size == size_class("xl")
+    active = np.asarray(file.level.sim.bodies.active)
+    assert active.sum() > 4  # more than the walls

@@ -23,15 +23,16 @@ back to the slots, so warm starting matches impulses by slot and feature key as 
 
 Overflow: a candidate list holds at most `capacities` pairs per scene; pairs beyond it, and
 touching pairs the colouring could not place in MAX_COLOURS colours, get no contact in that step
-(they are dropped whole, so the step stays well defined). `overflow` counts the first kind for a
-state, outside the step (tests and diagnostics); the colouring's rounds are rarely the limit (a
-pair needs at most 2d - 1 colours, d the most pairs of one moving body).
+(they are dropped whole, so the step stays well defined). `overflow` counts both kinds for a
+state, outside the step (tests and diagnostics). Greedy colouring needs at most 2d - 1 colours, d the
+most touching pairs of one moving body; the parallel rounds need a few more.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -268,17 +269,32 @@ def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, wid
     return layout, placed
 
 
-def overflow(state, params=None, num_static: int = 0) -> int:
-    """Close pairs (overlapping boxes, bodies that may collide) of one scene beyond the candidate
-    capacity: pairs the broad phase would leave without contacts in a step from `state`. For tests and
-    diagnostics, outside jit (the step itself keeps no counter)."""
+class Overflow(NamedTuple):
+    candidates: int  # close pairs beyond the candidate capacity
+    colours: int  # touching candidate pairs that MAX_COLOURS colours could not place
+
+
+def overflow(state, params=None, num_static: int = 0) -> Overflow:
+    """The pairs of one scene that a broad-phase step from `state` would leave without contacts: close pairs
+    (overlapping boxes, bodies that may collide) beyond the candidate capacity, and touching pairs the
+    colouring could not place. For tests and diagnostics, outside jit (the step keeps no counter)."""
     from jax2d.pairs import contact_layout
     from jax2d.state import SimParams
-    from jax2d.step import pair_filter
+    from jax2d.step import _over_pairs_and_batch, joint_connected, pair_filter
 
     params = SimParams() if params is None else params
     layout = contact_layout(state.num_polygons, state.num_circles, num_static)
+    M = layout.num_padded
     scene = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)
-    may = pair_filter(layout, scene.bodies, jnp.zeros((layout.num_slots, 1), bool), layout.num_padded)
+    may = pair_filter(layout, scene.bodies, jnp.zeros((layout.num_slots, 1), bool), M)
     spec = jnp.full((1,), params.speculative_distance, jnp.float32)
-    return int(candidates(layout, scene.bodies, spec, may).dropped)
+    rows, colours, width = rows_for(layout, 1)
+    cand = candidates(layout, scene.bodies, spec, may, colours * width - rows)
+    manifold = narrow_phase(cand, scene.bodies, spec, functools.partial(_over_pairs_and_batch, batch=(1,)),
+                            colours * width)
+    jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]
+    live = jnp.any(manifold.valid[..., 0], axis=1) & (cand.slot_kind != PADDING) & ~jointed
+    b = state.bodies
+    moving = jnp.zeros((M,), bool).at[:b.active.shape[0]].set(b.active & (b.inv_mass > 0))
+    _, placed = colour(cand, live, ~moving, M, colours, width)
+    return Overflow(int(cand.dropped), int(jnp.sum(live & ~placed)))

@@ -74,9 +74,9 @@ SIZES: dict[str, SizeClass] = {
     "s": SizeClass("s", polygons=5, circles=2, joints=1, thrusters=1),
     "m": SizeClass("m", polygons=6, circles=3, joints=2, thrusters=2),
     "l": SizeClass("l", polygons=12, circles=4, joints=6, thrusters=2),
-    # Levels bigger than l (issue 28): about five times l. Its scenes have more than
-    # jax2d.broad_phase.AUTO_BODIES bodies only where that is raised; see docs/engine.md for which
-    # contact path it uses.
+    # Levels bigger than l (issue 28): about five times l. One xl scene at a time (the browser, Python
+    # loops) collides only close pairs (jax2d.broad_phase, above AUTO_SINGLE_BODIES bodies); batches of
+    # xl scenes check every pair (docs/engine.md).
     "xl": SizeClass("xl", polygons=64, circles=16, joints=24, thrusters=8),
 }
 

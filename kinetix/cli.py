@@ -66,14 +66,15 @@ def non_negative_int(text: str) -> int:
     return value
 
 
-def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_steps: int, level_help: str) -> None:
-    """The options every `kinetix bench` throughput command shares."""
+def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_steps: int, level_help: str,
+                     sizes: tuple[str, ...] = SIZES) -> None:
+    """The options every `kinetix bench` throughput command shares; `sizes`: the size classes it can measure."""
     parser.add_argument("--json", action="store_true", help="print results as JSON lines instead of a table")
     parser.add_argument(
         "--sizes",
-        type=comma_list(str, allowed=set(SIZES)),
+        type=comma_list(str, allowed=set(sizes)),
         default=["s", "m", "l"],
-        help="size classes to measure, comma-separated: s, m, l, xl (default: s,m,l)",
+        help=f"size classes to measure, comma-separated: {', '.join(sizes)} (default: s,m,l)",
     )
     parser.add_argument(
         "--batches",
@@ -99,7 +100,8 @@ def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _bench_env_arguments(parser: argparse.ArgumentParser) -> None:
     _bench_arguments(parser, unit="agent", default_steps=100,
-                     level_help="measure this level file (either format) instead of the reference levels")
+                     level_help="measure this level file (either format) instead of the reference levels",
+                     sizes=("s", "m", "l"))  # the reference levels (kinetix.bench.env.REFERENCE_LEVELS)
 
 
 def _bench_server_arguments(parser: argparse.ArgumentParser) -> None:

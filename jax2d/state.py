@@ -199,6 +199,11 @@ class SolverConfig:
     # Batches larger than this are stepped in equal parts of at most this many scenes, one part
     # after the other, so each part's constraint data stays in the CPU's cache (step.step_batch).
     chunk: int = 256
+    # Big scenes: a broad phase picks the pairs whose bounding boxes overlap, and only those are
+    # collided and solved, coloured in the step (jax2d.broad_phase). None: on for scenes of more than
+    # broad_phase.AUTO_BODIES bodies, and for single scenes of more than AUTO_SINGLE_BODIES (the xl
+    # class at batch 1); True / False force it.
+    broad_phase: bool | None = None
 
     def __post_init__(self):
         if self.joint_position_projection is not None and self.joint_projection is None:

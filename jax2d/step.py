@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
-from jax2d import compiling, contact_solver, joint_solver
+from jax2d import broad_phase, compiling, contact_solver, joint_solver
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.compact import Compact, unpack, update
 from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft
@@ -115,14 +115,25 @@ def _step_in_parts(states: SimState, params: SimParams, motor_actions, thruster_
 def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_actions, config: SolverConfig):
     """step_batch on one part of the batch (params already per scene)."""
     layout = contact_layout(states.num_polygons, states.num_circles, config.num_static)
+    if broad_phase.uses_broad_phase(config.broad_phase, layout.num_bodies, states.bodies.active.shape[0]):
+        return _step_chunk_broad(layout, states, params, motor_actions, thruster_actions, config)
     M = layout.num_padded
     # The joint closure runs per scene; from there on every array is batch-last.
     jointed = jax.vmap(lambda j: joint_connected(j, M)[layout.slot_a, layout.slot_b])(states.joints)
     last = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, 0, -1))
     scene = last(states)
     manifold = narrow_phase(layout, scene.bodies, params.speculative_distance)
-    loop, valid = _prepare(layout, scene, params, last(motor_actions), last(thruster_actions), manifold,
-                           last(jointed), config)
+    loop, valid, _ = _prepare(layout, scene, params, last(motor_actions), last(thruster_actions), manifold,
+                              last(jointed), config)
+    pose, vel, cimp, jimp = _solve(layout, loop, config)
+    first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
+    pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
+    cimp = jax.vmap(functools.partial(contact_solver.unpack_impulses, layout))(cimp)
+    return jax.vmap(_store)(states, params, pose, vel, cimp, jimp, manifold, valid, dyn)
+
+
+def _solve(layout, loop: LoopData, config: SolverConfig):
+    """Substeps, restitution and the joint projection on the prepared loop data (batch-last)."""
     colours = contact_solver.schedule(loop.const)
     joints = joint_solver.schedule(loop.jc)
     pose, vel, cimp, jimp = _substeps(layout, loop, colours, joints, config)
@@ -133,9 +144,45 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
                                           joints, config.joint_position_projection)
         if shift is not None:
             pose = Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)
+    return pose, vel, cimp, jimp
+
+
+def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams, motor_actions, thruster_actions,
+                      config: SolverConfig):
+    """_step_chunk for big scenes: the narrow phase and the sweeps visit only the candidate pairs of the
+    broad phase, coloured in the step (jax2d.broad_phase); results go back to the persistent slots."""
+    M, S = layout.num_padded, layout.num_slots
+    B = states.bodies.active.shape[0]
+    last = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, 0, -1))
     first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
+    scene = last(states)
+    rows, colours, width = broad_phase.rows_for(layout, B)
+    total = colours * width
+    may_collide = pair_filter(layout, scene.bodies, jnp.zeros((S, B), bool), M)
+    cand = broad_phase.candidates(layout, scene.bodies, params.speculative_distance, may_collide, total - rows)
+    manifold = broad_phase.narrow_phase(cand, scene.bodies, params.speculative_distance,
+                                        functools.partial(_over_pairs_and_batch, batch=(B,)), total)
+    # The joint closure only where some scene has a joint: (M, M) matrix products are costly at M ~ 200.
+    jointed = jax.lax.cond(
+        jnp.any(states.joints.active),
+        lambda: jax.vmap(lambda j: joint_connected(j, M)[cand.slot_a, cand.slot_b])(states.joints),
+        lambda: jnp.zeros((B, total), bool))
+    contacts = jax.tree.map(lambda x: jnp.take(x, cand.slot, axis=0, mode="fill", fill_value=0), scene.contacts)
+    contacts = dataclasses.replace(contacts, key=jnp.where(cand.slot[:, None, None] < S, contacts.key, -1))
+    scene = dataclasses.replace(scene, contacts=contacts)
+    loop, valid, solved = _prepare(cand, scene, params, last(motor_actions), last(thruster_actions), manifold,
+                                   last(jointed), config)
+    pose, vel, cimp, jimp = _solve(solved, loop, config)
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
-    cimp = jax.vmap(functools.partial(contact_solver.unpack_impulses, layout))(cimp)
+    cimp = jax.vmap(functools.partial(contact_solver.unpack_impulses, solved))(cimp)
+
+    def to_slots(x, fill):  # (B, L, 2) candidate rows -> (B, S, 2) slots; padding rows are dropped
+        return jnp.full((B, S) + x.shape[2:], fill, x.dtype).at[:, cand.slot].set(x, mode="drop")
+
+    manifold = Manifold(None, None, to_slots(manifold.separation, 0.0), to_slots(manifold.key, -1),
+                        to_slots(manifold.valid, False))
+    valid = to_slots(valid, False)
+    cimp = contact_solver.ContactImpulses(*(to_slots(x, 0.0) for x in cimp))
     return jax.vmap(_store)(states, params, pose, vel, cimp, jimp, manifold, valid, dyn)
 
 
@@ -187,14 +234,15 @@ class LoopData(NamedTuple):
 
 
 def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_actions, thruster_actions,
-             manifold: Manifold, jointed, config: SolverConfig) -> tuple[LoopData, jax.Array]:
+             manifold: Manifold, jointed, config: SolverConfig) -> tuple[LoopData, jax.Array, ContactLayout]:
     """Constraint preparation from the pose at the start of the step, on batch-last arrays.
 
     Every leaf has the batch as its last axis: per body (N, *batch), per slot (S, *batch),
     params (*batch). Run batch-major under vmap, this stage gathered a few floats per row and
     then transposed every constraint array for the substeps; batch-last, each gather by a
     constant slot index is one contiguous row. jointed: (S, *batch) slots whose bodies a chain
-    of joints connects. Returns the loop data and (S, 2, *batch) which points are valid.
+    of joints connects. Returns the loop data, (S, 2, *batch) which points are valid and the
+    layout the solver uses (for broad_phase.Candidates, a broad_phase.DynamicLayout coloured here).
     """
     M = layout.num_padded
     b = state.bodies
@@ -210,6 +258,14 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
     jc = joint_solver.prepare(state.joints, M, inv_mass, inv_inertia, motor_actions, h, params)
     enabled = pair_filter(layout, b, jointed, M)
     valid = manifold.valid & enabled[:, None]
+    if isinstance(layout, broad_phase.Candidates):
+        # Colour the pairs that hold a point in some scene; bodies static in every scene may repeat.
+        live = jnp.any(valid.reshape(valid.shape[0], -1), axis=1)
+        shareable = jnp.all(dyn.reshape(M, -1) == 0.0, axis=1)
+        rows = layout.slot.shape[0]
+        layout, placed = broad_phase.colour(layout, live, shareable, M, broad_phase.MAX_COLOURS,
+                                            rows // broad_phase.MAX_COLOURS)
+        valid = valid & placed.reshape((-1, 1) + (1,) * (valid.ndim - 2))
     cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
                                 _pad(b.friction, M), _pad(b.restitution, M))
     cimp = contact_solver.pack_impulses(layout, _matched_impulses(state.contacts, manifold.key, valid,
@@ -228,7 +284,7 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
         max_push_velocity=jnp.asarray(params.max_push_velocity, jnp.float32),
         restitution_threshold=jnp.asarray(params.restitution_threshold, jnp.float32),
     )
-    return loop, valid
+    return loop, valid, layout
 
 
 def _substeps(layout: ContactLayout, d: LoopData, colours: contact_solver.Schedule, joints: joint_solver.Schedule,
@@ -283,13 +339,7 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
     spec = jnp.asarray(speculative, jnp.float32)
     batch = pos.shape[2:]
-
-    def over_pairs_and_batch(collide, n):
-        inner = collide
-        for _ in batch:  # the batch axes, innermost last
-            inner = jax.vmap(inner, in_axes=(-1,) * (n + 1), out_axes=-1)
-        return jax.vmap(inner, in_axes=(0,) * n + (None,))
-
+    over_pairs_and_batch = functools.partial(_over_pairs_and_batch, batch=batch)
     kinds = layout.by_kind
     parts = []
     i, j = layout.slot_a[kinds[POLY_POLY]], layout.slot_b[kinds[POLY_POLY]]
@@ -318,6 +368,15 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
     rows = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
     # Every slot picks its row with a constant index (padding slots take the empty row).
     return jax.tree.map(lambda x: x[layout.gather], rows)
+
+
+def _over_pairs_and_batch(collide, n: int, batch: tuple):
+    """A collide function of n pair arguments plus the speculative distance, mapped over the batch
+    axes (minor, innermost last) and the pairs (major)."""
+    inner = collide
+    for _ in batch:
+        inner = jax.vmap(inner, in_axes=(-1,) * (n + 1), out_axes=-1)
+    return jax.vmap(inner, in_axes=(0,) * n + (None,))
 
 
 def pair_filter(layout: ContactLayout, b: Bodies, jointed, M: int):

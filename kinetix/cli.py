@@ -13,6 +13,10 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
+# kinetix.level.SIZES' names, written out: the CLI parses its arguments before importing JAX
+# (tests/kinetix/test_size_classes.py checks that the two agree).
+SIZES = ("s", "m", "l", "xl")
+
 
 def _no_arguments(parser: argparse.ArgumentParser) -> None:
     pass
@@ -62,14 +66,15 @@ def non_negative_int(text: str) -> int:
     return value
 
 
-def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_steps: int, level_help: str) -> None:
-    """The options every `kinetix bench` throughput command shares."""
+def _bench_arguments(parser: argparse.ArgumentParser, *, unit: str, default_steps: int, level_help: str,
+                     sizes: tuple[str, ...] = SIZES) -> None:
+    """The options every `kinetix bench` throughput command shares; `sizes`: the size classes it can measure."""
     parser.add_argument("--json", action="store_true", help="print results as JSON lines instead of a table")
     parser.add_argument(
         "--sizes",
-        type=comma_list(str, allowed={"s", "m", "l"}),
+        type=comma_list(str, allowed=set(sizes)),
         default=["s", "m", "l"],
-        help="size classes to measure, comma-separated (default: s,m,l)",
+        help=f"size classes to measure, comma-separated: {', '.join(sizes)} (default: s,m,l)",
     )
     parser.add_argument(
         "--batches",
@@ -98,7 +103,8 @@ def _bench_engine_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _bench_env_arguments(parser: argparse.ArgumentParser) -> None:
     _bench_arguments(parser, unit="agent", default_steps=100,
-                     level_help="measure this level file (either format) instead of the reference levels")
+                     level_help="measure this level file (either format) instead of the reference levels",
+                     sizes=("s", "m", "l"))  # the reference levels (kinetix.bench.env.REFERENCE_LEVELS)
 
 
 def _bench_server_arguments(parser: argparse.ArgumentParser) -> None:
@@ -124,8 +130,9 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-training-per-client", type=positive_int, default=1,
                         help="training runs of one person (author identity, else tab) running at once; one more "
                              "may wait (default: 1)")
-    parser.add_argument("--warm", type=comma_list(str, allowed={"s", "m", "l", "none"}), default=["s", "m", "l"],
-                        help="size classes whose play step is compiled before serving, or none (default: s,m,l)")
+    parser.add_argument("--warm", type=comma_list(str, allowed={*SIZES, "none"}), default=["s", "m", "l"],
+                        help="size classes whose play step is compiled before serving (s, m, l, xl), or none (default: "
+                             "s,m,l; another size compiles when first played)")
     parser.add_argument("--no-record", dest="record", action="store_false",
                         help="do not record plays (default: every play is recorded to <data>/recordings)")
     # Web safety (server/web_security.py, server/gallery/limits.py); None keeps the server's defaults.
@@ -154,7 +161,7 @@ def _convert_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="IN", help="level file to read (format detected from its content)")
     parser.add_argument("output", metavar="OUT", help="file to write (replaced atomically)")
     parser.add_argument("--to", choices=["ours", "kinetix"], help="format to write (default: the other one)")
-    parser.add_argument("--size", choices=["s", "m", "l"], help="size class to write (default: the input's)")
+    parser.add_argument("--size", choices=list(SIZES), help="size class to write (default: the input's)")
 
 
 def _play_arguments(parser: argparse.ArgumentParser) -> None:
@@ -177,7 +184,7 @@ def _export_demos_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--in", dest="inputs", nargs="+", required=True, metavar="DIR_OR_FILE",
                         help="recordings (.mcap files, or directories searched for them)")
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write")
-    parser.add_argument("--size", choices=["s", "m", "l"], help="size class of the observations (default: largest)")
+    parser.add_argument("--size", choices=list(SIZES), help="size class of the observations (default: largest)")
     parser.add_argument("--solved-only", action="store_true", help="keep only recordings that solve their level")
     parser.add_argument("--obs", choices=["entity", "flat", "pixels"], default="flat", help="observation type")
     parser.add_argument("--shard-steps", type=positive_int, default=100_000, help="steps per .npz shard")
@@ -306,7 +313,7 @@ COMMANDS: list[Command] = [
 
 def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print results as JSON lines")
-    parser.add_argument("--sizes", type=comma_list(str, allowed={"s", "m", "l"}), default=["s", "m", "l"],
+    parser.add_argument("--sizes", type=comma_list(str, allowed=set(SIZES)), default=["s", "m", "l"],
                         help="size classes to measure, comma-separated (default: s,m,l)")
     parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
     parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")

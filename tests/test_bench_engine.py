@@ -9,9 +9,9 @@ import pytest
 
 from kinetix.bench import engine, scenes
 
-SIZES = ("s", "m", "l")
+SIZES = ("s", "m", "l", "xl")
 # Slot counts from the issue; polygons include the 4 static walls.
-EXPECTED_COUNTS = {"s": (5, 2, 1, 1), "m": (6, 3, 2, 2), "l": (12, 4, 6, 2)}
+EXPECTED_COUNTS = {"s": (5, 2, 1, 1), "m": (6, 3, 2, 2), "l": (12, 4, 6, 2), "xl": (64, 16, 24, 8)}
 
 
 @pytest.mark.parametrize("size", SIZES)

@@ -55,7 +55,7 @@ def test_bench_engine_arguments_are_parsed_into_lists():
     assert args.json is False
 
 
-@pytest.mark.parametrize("bad", [["--sizes", "s,xl"], ["--batches", "0"], ["--batches", "two"], ["--steps", "-1"]])
+@pytest.mark.parametrize("bad", [["--sizes", "s,xxl"], ["--batches", "0"], ["--batches", "two"], ["--steps", "-1"]])
 def test_bench_engine_rejects_bad_values(bad, capsys):
     with pytest.raises(SystemExit) as exit_info:
         cli.build_parser().parse_args(["bench", "engine", *bad])

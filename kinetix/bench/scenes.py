@@ -1,4 +1,4 @@
-"""The benchmark scenes: three size classes with every capacity slot in use, built with jax2d only.
+"""The benchmark scenes: four size classes with every capacity slot in use, built with jax2d only.
 
 Each scene sits in the public Kinetix world, 5 m x 5 m, walled by four big static boxes in polygon
 slots 0-3 (so SolverConfig(num_static=4) applies): floor top at y = 0.4, walls at x = 0 and x = 5,
@@ -31,6 +31,7 @@ CAPACITIES = {
     "s": Capacity(polygons=5, circles=2, joints=1, thrusters=1),
     "m": Capacity(polygons=6, circles=3, joints=2, thrusters=2),
     "l": Capacity(polygons=12, circles=4, joints=6, thrusters=2),
+    "xl": Capacity(polygons=64, circles=16, joints=24, thrusters=8),
 }
 
 
@@ -120,7 +121,39 @@ def build_l(rng: np.random.Generator) -> SimState:
     return state
 
 
-BUILDERS: dict[str, Callable[[np.random.Generator], SimState]] = {"s": build_s, "m": build_m, "l": build_l}
+def build_xl(rng: np.random.Generator) -> SimState:
+    """Two cars with thrusters, each carrying a box with a thruster; a pyramid of 36 small boxes between
+    them; four chains of five links hanging from the ceiling, two with motors, each ending in a thruster;
+    twelve balls thrown sideways from above onto the pyramid and the cars."""
+    state = add_walls(empty_state(CAPACITIES["xl"]))
+    for x in (0.75 + rng.uniform(-0.1, 0.1), 4.25 + rng.uniform(-0.1, 0.1)):
+        state, chassis = _car(state, x, rng)
+        state, _ = add_thruster(state, chassis, (x - 0.5, FLOOR + 0.23), angle=0.2, power=0.3)
+        state, box = add_rectangle(state, (x + rng.uniform(-0.2, 0.2), FLOOR + 0.44), 0.2, 0.2)
+        state, _ = add_thruster(state, box, (x, FLOOR + 0.54), angle=-np.pi / 2, power=0.1)
+    side, base = 0.22, 8
+    for row in range(base):
+        for k in range(base - row):
+            x = 2.5 + (k - (base - row - 1) / 2) * side + rng.uniform(-0.01, 0.01)
+            state, _ = add_rectangle(state, (x, FLOOR + side * (row + 0.5)), side, side)
+    ceiling, link = WORLD, 0.3
+    for i, cx in enumerate((1.0, 2.0, 3.0, 4.0)):
+        above = 3  # the ceiling
+        for k in range(5):
+            state, body = add_rectangle(state, (cx, ceiling - link * (k + 0.5)), 0.06, link)
+            motor = i % 2 == 0 and k == 1
+            state, _ = add_revolute_joint(state, above, body, (cx, ceiling - link * k), motor_on=motor,
+                                          motor_speed=float(rng.uniform(0.5, 1.0)))
+            above = body
+        state, _ = add_thruster(state, above, (cx, ceiling - 5 * link), angle=0.0, power=0.2)
+    for k in range(12):
+        state, _ = add_circle(state, (0.85 + 0.3 * k + rng.uniform(-0.03, 0.03), 2.8), 0.1,
+                              velocity=(1.0 if k % 2 else -1.0, 0.0))
+    return state
+
+
+BUILDERS: dict[str, Callable[[np.random.Generator], SimState]] = {"s": build_s, "m": build_m, "l": build_l,
+                                                                 "xl": build_xl}
 
 
 def with_max_vertices(state: SimState, max_vertices: int) -> SimState:

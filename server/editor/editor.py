@@ -32,7 +32,7 @@ DEFAULT_RADIUS = 0.2  # a click with the circle tool (no drag) makes a circle of
 DEFAULT_SIDE = 0.4  # and with the rectangle tool, a square of this side
 MIN_SIZE = 0.02  # m: smaller circles and rectangles are refused
 CAPACITY_NAMES = {"polygons": "polygon", "circles": "circle", "joints": "joint", "thrusters": "thruster"}
-GROWTH = {"s": "m", "m": "l"}  # the next larger size class a full level is offered (none after l or a custom size)
+GROWTH = {"s": "m", "m": "l", "l": "xl"}  # the next larger size class a full level is offered (none after xl or custom)
 
 
 @dataclasses.dataclass

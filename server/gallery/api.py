@@ -56,7 +56,7 @@ class LevelSummary(BaseModel):
     created: int = Field(description="milliseconds since the Unix epoch")
     updated: int
     parent: str | None = Field(description="the level this one remixes")
-    size: Literal["s", "m", "l"]
+    size: Literal["s", "m", "l", "xl"]
     tags: list[str]
     stats: Stats
     thumbnail: str = Field(description="URL of the PNG thumbnail")
@@ -200,7 +200,7 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
     @router.get("/levels", response_model=LevelPage, summary="List levels, one page at a time")
     async def list_levels(
         sort: Literal["newest", "top", "played", "hardest"] = Query("newest", description=", ".join(SORTS)),
-        size: Literal["s", "m", "l"] | None = Query(None, description="size class: " + ", ".join(SIZES)),
+        size: Literal["s", "m", "l", "xl"] | None = Query(None, description="size class: " + ", ".join(SIZES)),
         tag: str | None = Query(None, max_length=32),
         q: str | None = Query(None, max_length=100, description="search the name (case-insensitive)"),
         author: str | None = Query(None, max_length=16),

@@ -61,7 +61,7 @@ from sqlalchemy.exc import IntegrityError
 from server.gallery import migrations
 
 REPO_LEVELS = Path(__file__).resolve().parents[2] / "levels"
-SIZES = ("s", "m", "l")
+SIZES = ("s", "m", "l", "xl")
 KINDS = ("human", "agent")
 SORTS = ("newest", "top", "played", "hardest")
 MAX_NAME = 100
@@ -208,7 +208,7 @@ def prepare_level(level: Any, name: str | None = None) -> SavedLevel:
     except RecursionError:
         raise Invalid("level: nested too deeply") from None
     if file.size.name not in SIZES:
-        raise Invalid(f"level: size {file.size.name!r} is not a gallery size class; use s, m or l")
+        raise Invalid(f"level: size {file.size.name!r} is not a gallery size class; use s, m, l or xl")
     if name is not None:
         file = dataclasses.replace(file, name=name)
     return SavedLevel(file.size.name, dumps(file, "ours"), render_thumbnail_png(file.level, THUMBNAIL_SIZE))

@@ -216,3 +216,25 @@ def random_scene(seed: int, capacity: jax2d.Capacity) -> tuple[jax2d.SimState, l
         state, _ = scene.add_thruster(state, i, p + rng.normal(0, 0.1, 2), angle=rng.uniform(-np.pi, np.pi),
                                       power=power)
     return state, joints
+
+
+# ---------------------------------------------------------------- pyramid
+
+
+def pyramid(base: int, side: float = 1.0, friction: float = 0.6,
+            extra: int = 0) -> tuple[jax2d.SimState, np.ndarray, np.ndarray]:
+    """A pyramid of side x side boxes, rows of base, base - 1, ..., 1, on a static 40 m floor (body 0)
+    whose top face is y = 0. Capacity: exactly the floor and the boxes, plus `extra` polygon slots.
+    Returns the state, the boxes' body indices and each box's row (0 at the bottom)."""
+    count = base * (base + 1) // 2
+    state = jax2d.empty_state(jax2d.Capacity(polygons=1 + count + extra, circles=0, joints=0, thrusters=0,
+                                             max_vertices=4))
+    state, _ = scene.add_rectangle(state, (0.0, -0.5), 40.0, 1.0, fixed=True, friction=friction)
+    boxes, rows = [], []
+    for row in range(base):
+        for k in range(base - row):
+            x = (k - (base - row - 1) / 2) * side
+            state, i = scene.add_rectangle(state, (x, side / 2 + row * side), side, side, friction=friction)
+            boxes.append(i)
+            rows.append(row)
+    return state, np.array(boxes), np.array(rows)

@@ -539,7 +539,7 @@ OURS_CASES = [
     (("thrusters", 0, "body"), -1, r"thrusters\[0\].body: -1 is out of range"),
     (("thrusters", 0, "binding"), 2, r"thrusters\[0\].binding: 2 is out of range \[0, 1\]"),
     (("thrusters", 0, "power"), -0.5, r"thrusters\[0\].power: -0.5 is out of range \[0, 100\]"),
-    (("size",), "xl", "size: expected one of s, m, l"),
+    (("size",), "xxl", "size: expected one of s, m, l, xl"),
     (("size",), {"polygons": 2}, "size: missing required fields circles, joints, thrusters"),
     (("size",), {"polygons": -2, "circles": 1, "joints": 1, "thrusters": 1}, r"size.polygons: -2 is out of range"),
     (("env",), {"frame_skip": 0}, r"env.frame_skip: 0 is out of range \[1, 16\]"),

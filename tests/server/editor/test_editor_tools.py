@@ -192,14 +192,21 @@ def test_a_full_level_is_offered_the_next_size_and_moving_there_does_the_refused
     assert ed.size.name == "m"
 
 
-def test_no_size_is_offered_beyond_l():
+def test_a_full_l_level_is_offered_xl_and_nothing_beyond_xl():
     ed = Editor(size="s")
     ed.set_size("l")
     ed.snapping = False
     ed.set_tool("circle")
     for x in (0.5, 1.5, 2.5, 3.5):
         assert ed.click(x, 2.0) is None
-    assert ed.click(4.5, 2.0) == "no circle left: 4 of 4 used in size l" and ed.size_offer is None
+    assert ed.click(4.5, 2.0) == 'no circle left: 4 of 4 used in size l; "Move to size xl" in the panel makes room'
+    assert ed.size_offer == "xl"
+    assert ed.grow_size() is None
+    assert ed.size.name == "xl" and ed.limits()["circles"] == (5, 16)
+    for x, y in [(x, y) for y in (1.0, 3.0) for x in (0.5, 1.5, 2.5, 3.5, 4.5, 0.9)][:11]:
+        assert ed.click(x, y + (0.8 if x == 0.9 else 0.0)) is None
+    assert ed.limits()["circles"] == (16, 16)
+    assert ed.click(4.2, 4.2) == "no circle left: 16 of 16 used in size xl" and ed.size_offer is None
     assert ed.grow_size().startswith("no larger size class")
 
 

@@ -1,0 +1,300 @@
+"""Broad phase and per-step colouring for big scenes (SolverConfig.broad_phase).
+
+The all-pairs path (pairs.py) gives every body pair a persistent slot, runs the narrow phase on
+every slot and sweeps every colour that holds a point. A 210-box pyramid has 22,366 slots in 211
+colours, and its ~600 touching pairs fall in all 211 of them: a step at batch 1 took 73-109 ms, of
+which the narrow phase was 5-7 ms and the rest the sweeps (211 colours, 12 sweeps per step).
+
+Here each step instead:
+1. bounds every body by a box (its AABB grown by half the speculative distance on each side) and
+   keeps the slots whose two boxes overlap and whose bodies may collide (one cheap elementwise test
+   per slot, any scene of the batch part), compacted into a fixed-capacity candidate list per kind
+   of pair (`capacities`);
+2. runs the narrow phase on the candidates only;
+3. colours the candidates that hold a point, in `jit`: rounds of a parallel greedy matching (a pair
+   joins the round's colour when it has the lowest of a fixed pseudo-random priority among the
+   uncoloured pairs at each of its moving bodies; three tries per round). A body static in every
+   scene of the part may repeat within a colour (its velocity never changes), as in
+   pairs.wall_grouped;
+4. hands the contact solver a `DynamicLayout`: the same attributes as pairs.ContactLayout with
+   traced arrays, so the sweeps visit only the few colours of the touching pairs.
+The persistent state is unchanged (one slot per pair): results are gathered from and scattered
+back to the slots, so warm starting matches impulses by slot and feature key as before.
+
+Overflow: a candidate list holds at most `capacities` pairs per scene; pairs beyond it, and
+touching pairs the colouring could not place in MAX_COLOURS colours, get no contact in that step
+(they are dropped whole, so the step stays well defined). `overflow` counts both kinds for a
+state, outside the step (tests and diagnostics). Greedy colouring needs at most 2d - 1 colours, d the
+most touching pairs of one moving body; the parallel rounds need a few more.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
+from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
+
+# With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, and
+# so do single scenes (a batch part of one) of more than AUTO_SINGLE_BODIES. Measured on this 2-core
+# machine under load (docs/engine.md): the xl bench scene (80 bodies) at batch 1 took 2.1-2.4 ms a
+# step with it and 3.5-5.0 ms without; at batch 16 both took 70-80 ms, because the candidate list
+# is the union over the batch part and grows to every slot (see capacities).
+AUTO_BODIES = 100
+AUTO_SINGLE_BODIES = 40
+# Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
+# (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).
+CANDIDATES_PER_BODY = 4
+MAX_COLOURS = 32  # colouring rounds; a colour holds up to 2 x candidates / MAX_COLOURS pairs
+TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)
+
+
+def uses_broad_phase(broad_phase: bool | None, num_bodies: int, batch: int = 1) -> bool:
+    """Whether a batch part of `batch` scenes of `num_bodies` bodies is stepped with the broad phase."""
+    if broad_phase is not None:
+        return bool(broad_phase)
+    return num_bodies > AUTO_BODIES or (batch == 1 and num_bodies > AUTO_SINGLE_BODIES)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Candidates:
+    """The step's candidate pairs: L rows, each a slot of the all-pairs layout (or padding)."""
+
+    num_padded: int  # M
+    slot: jax.Array  # (L,) int32 slot index; S (out of range) for padding rows
+    slot_a: jax.Array  # (L,) body of side a (0 for padding)
+    slot_b: jax.Array  # (L,) body of side b (0 for padding)
+    slot_kind: jax.Array  # (L,) pairs.POLY_POLY ... ; PADDING for padding rows
+    lists: tuple  # per narrow-phase call: (call, rows, bodies a (rows,), bodies b, normal sign or None)
+    dropped: jax.Array  # () int32 close pairs beyond the capacity (over the batch part's union)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DynamicLayout:
+    """pairs.ContactLayout's attributes for the contact solver, computed in the step."""
+
+    num_padded: int
+    num_colours: int
+    per_colour: int
+    slot_a: jax.Array
+    slot_b: jax.Array
+    slot_kind: jax.Array
+    solve_slots: jax.Array  # (C * K,) candidate row at each solve position
+    slot_order: jax.Array  # (L,) solve position of each candidate row
+    solve_sides: jax.Array  # (C, 2K)
+    write_back: jax.Array  # (C, M)
+    walls_repeat: bool = True
+
+    @property
+    def num_slots(self) -> int:
+        return self.num_colours * self.per_colour
+
+
+def _kind_lists(layout: ContactLayout):
+    """Per narrow-phase call: (call, slots, bodies a, bodies b, normal sign or None) as numpy. Polygon-circle
+    pairs in either order share one call ("pc", polygon first); circle-first slots flip the normal."""
+    k, a, b = layout.by_kind, layout.slot_a, layout.slot_b
+    out = []
+    pp = k[POLY_POLY]
+    if len(pp):
+        out.append(("pp", pp, a[pp], b[pp], None))
+    pc, cp = k[POLY_CIRCLE], k[CIRCLE_POLY]
+    if len(pc) + len(cp):
+        out.append(("pc", np.concatenate([pc, cp]), np.concatenate([a[pc], b[cp]]), np.concatenate([b[pc], a[cp]]),
+                    np.concatenate([np.ones(len(pc)), -np.ones(len(cp))]).astype(np.float32)))
+    cc = k[CIRCLE_CIRCLE]
+    if len(cc):
+        out.append(("cc", cc, a[cc], b[cc], None))
+    return out
+
+
+def capacities(layout: ContactLayout, batch: int) -> list[int]:
+    """Candidate rows of each narrow-phase call for a batch part of `batch` scenes (the union of its scenes)."""
+    caps = []
+    for _, slots, a, b, _ in _kind_lists(layout):
+        bodies = len(np.unique(np.concatenate([a, b])))
+        caps.append(int(min(len(slots), CANDIDATES_PER_BODY * bodies * batch)))
+    return caps
+
+
+def boxes(b, speculative) -> jax.Array:
+    """(4, M?, *batch) lower x, lower y, upper x, upper y of every body (batch-last bodies), grown by
+    half the speculative distance on each side, so two boxes overlap whenever the narrow phase could
+    find a point."""
+    pos, ang = b.position, b.angle  # (N, 2, *batch), (N, *batch)
+    P = b.vertices.shape[0]
+    grow = 0.5 * jnp.asarray(speculative, jnp.float32)
+    c, s = jnp.cos(ang[:P]), jnp.sin(ang[:P])
+    vx, vy = b.vertices[:, :, 0], b.vertices[:, :, 1]  # (P, V, *batch)
+    real = jnp.arange(vx.shape[1]).reshape((1, -1) + (1,) * (vx.ndim - 2)) < b.n_vertices[:, None]
+    wx = jnp.where(real, c[:, None] * vx - s[:, None] * vy, 0.0)
+    wy = jnp.where(real, s[:, None] * vx + c[:, None] * vy, 0.0)
+    px, py = pos[:P, 0], pos[:P, 1]
+    big = jnp.float32(1e9)
+    poly = jnp.stack([px + jnp.min(jnp.where(real, wx, big), axis=1), py + jnp.min(jnp.where(real, wy, big), axis=1),
+                      px + jnp.max(jnp.where(real, wx, -big), axis=1), py + jnp.max(jnp.where(real, wy, -big), axis=1)])
+    cx, cy, r = pos[P:, 0], pos[P:, 1], b.radius
+    circle = jnp.stack([cx - r, cy - r, cx + r, cy + r])
+    box = jnp.concatenate([poly, circle], axis=1)
+    return box + jnp.array([-1.0, -1.0, 1.0, 1.0], jnp.float32).reshape((4, 1) + (1,) * (box.ndim - 2)) * grow
+
+
+def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: int = 0) -> Candidates:
+    """The slots whose boxes overlap in some scene (batch-last bodies) and whose bodies may collide
+    (may_collide (S, *batch), pair_filter without joints), compacted per kind; then `extra_rows`
+    padding rows."""
+    box = boxes(b, speculative)
+    batch = box.shape[2:]
+    B = int(np.prod(batch)) if batch else 1
+    S = layout.num_slots
+    lists, slots, sa, sb, kinds = [], [], [], [], []
+    dropped = jnp.int32(0)
+    for (call, idx, a, c, sign), cap in zip(_kind_lists(layout), capacities(layout, B), strict=True):
+        ba, bb = box[:, a], box[:, c]
+        overlap = (ba[0] <= bb[2]) & (bb[0] <= ba[2]) & (ba[1] <= bb[3]) & (bb[1] <= ba[3]) & may_collide[idx]
+        close = jnp.any(overlap.reshape((len(idx), -1)), axis=1)
+        count = jnp.sum(close, dtype=jnp.int32)
+        dropped = dropped + jnp.maximum(count - cap, 0)
+        row = jnp.nonzero(close, size=cap, fill_value=0)[0].astype(jnp.int32)
+        filled = jnp.arange(cap) < count
+        ia, ic = jnp.asarray(a, jnp.int32)[row], jnp.asarray(c, jnp.int32)[row]
+        lists.append((call, cap, ia, ic, None if sign is None else jnp.asarray(sign)[row]))
+        slot = jnp.asarray(idx, jnp.int32)[row]
+        kind = jnp.asarray(layout.slot_kind, jnp.int32)[slot]
+        slots.append(jnp.where(filled, slot, S))
+        kinds.append(jnp.where(filled, kind, PADDING))
+        # The solver's sides keep the slot's own order (a, b), so normals point from a to b.
+        sa.append(jnp.asarray(layout.slot_a, jnp.int32)[slot])
+        sb.append(jnp.asarray(layout.slot_b, jnp.int32)[slot])
+    pad = jnp.zeros((extra_rows,), jnp.int32)
+    return Candidates(layout.num_padded, jnp.concatenate(slots + [pad + S]), jnp.concatenate(sa + [pad]),
+                      jnp.concatenate(sb + [pad]), jnp.concatenate(kinds + [pad + PADDING]), tuple(lists), dropped)
+
+
+def rows_for(layout: ContactLayout, batch: int) -> tuple[int, int, int]:
+    """(candidate rows before padding, colours, colour width) for a part of `batch` scenes."""
+    rows = max(1, sum(capacities(layout, batch)))
+    width = max(8, -(-2 * rows // MAX_COLOURS))
+    return rows, MAX_COLOURS, width
+
+
+def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: int) -> Manifold:
+    """Manifolds of the candidate rows (batch-last), padding rows empty; total = rows with padding."""
+    P = b.vertices.shape[0]
+    pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
+    spec = jnp.asarray(speculative, jnp.float32)
+    batch = pos.shape[2:]
+    parts = []
+    for call, _, i, j, sign in cand.lists:
+        if call == "pp":
+            parts.append(over_pairs_and_batch(collide_polygons, 8)(
+                pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], spec))
+        elif call == "pc":
+            m = over_pairs_and_batch(collide_polygon_circle, 6)(pos[i], ang[i], verts[i], nv[i], pos[j], rad[j - P],
+                                                                 spec)
+            parts.append(dataclasses.replace(m, normal=m.normal * sign.reshape((-1, 1) + (1,) * len(batch))))
+        else:
+            parts.append(over_pairs_and_batch(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P], spec))
+    n = sum(x[1] for x in cand.lists)
+    empty = Manifold(jnp.zeros((total - n, 2)).at[:, 1].set(1.0), jnp.zeros((total - n, 2, 2)),
+                     jnp.zeros((total - n, 2)), jnp.full((total - n, 2), -1, jnp.int32),
+                     jnp.zeros((total - n, 2), bool))
+    empty = jax.tree.map(lambda x: jnp.broadcast_to(x.reshape(x.shape + (1,) * len(batch)), x.shape + batch), empty)
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
+
+
+@functools.cache
+def _priority(rows: int) -> np.ndarray:
+    """A fixed pseudo-random priority per candidate row (a permutation): the colouring's tie-breaker.
+    Random rather than the row order, so chains of pairs resolve in a few rounds, not one per pair."""
+    return np.random.default_rng(28).permutation(rows).astype(np.int32)
+
+
+def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, width: int) -> tuple[DynamicLayout,
+                                                                                                  jax.Array]:
+    """Colour the live candidate rows (L,) (a point in some scene); shareable (M,): bodies static in every
+    scene, which may repeat within a colour. Returns the layout and the rows it placed (live ones
+    beyond MAX_COLOURS rounds are not)."""
+    L, M = live.shape[0], num_padded
+    a, b = cand.slot_a, cand.slot_b
+    prio = jnp.asarray(_priority(L))
+    share_a, share_b = shareable[a], shareable[b]
+    none = jnp.int32(L)
+
+    def one_round(carry):
+        r, col, pos = carry
+        free = live & (col < 0)
+        chosen = jnp.zeros((L,), bool)
+        blocked = jnp.zeros((L,), bool)
+        for _ in range(TRIES_PER_COLOUR):
+            try_ = free & ~blocked & ~chosen
+            p = jnp.where(try_, prio, none)
+            best = jnp.full((M,), none).at[a].min(p).at[b].min(p)
+            win = try_ & ((best[a] == p) | share_a) & ((best[b] == p) | share_b)
+            chosen = chosen | win
+            used = jnp.zeros((M,), bool).at[a].max(chosen).at[b].max(chosen) & ~shareable
+            blocked = used[a] | used[b]
+        rank = jnp.cumsum(chosen, dtype=jnp.int32) - 1
+        take = chosen & (rank < width)
+        return r + 1, jnp.where(take, r, col), jnp.where(take, r * width + rank, pos)
+
+    def more(carry):
+        r, col, _ = carry
+        return (r < colours) & jnp.any(live & (col < 0))
+
+    start = (jnp.int32(0), jnp.full((L,), -1, jnp.int32), jnp.full((L,), -1, jnp.int32))
+    _, col, pos = jax.lax.while_loop(more, one_round, start)
+    placed = col >= 0
+    # Solve positions: placed rows where the colouring put them, every other row in a free position.
+    n = colours * width
+    taken = jnp.zeros((n,), bool).at[jnp.where(placed, pos, n)].set(True, mode="drop")
+    free_pos = jnp.nonzero(~taken, size=L, fill_value=n)[0]
+    rest = jnp.nonzero(~placed, size=L, fill_value=0)[0]
+    count_rest = jnp.sum(~placed)
+    solve = jnp.zeros((n,), jnp.int32).at[jnp.where(placed, pos, n)].set(jnp.arange(L, dtype=jnp.int32), mode="drop")
+    solve = solve.at[jnp.where(jnp.arange(L) < count_rest, free_pos, n)].set(rest.astype(jnp.int32), mode="drop")
+    order = jnp.zeros((L,), jnp.int32).at[solve].set(jnp.arange(n, dtype=jnp.int32))
+    sides = jnp.concatenate([a[solve].reshape(colours, width), b[solve].reshape(colours, width)], axis=1)
+    k = pos - col * width
+    c_idx = jnp.where(placed, col, colours)
+    back = jnp.tile(jnp.arange(M, dtype=jnp.int32), (colours, 1))
+    back = back.at[c_idx, a].set(M + k, mode="drop").at[c_idx, b].set(M + width + k, mode="drop")
+    layout = DynamicLayout(M, colours, width, a, b, cand.slot_kind, solve, order, sides, back)
+    return layout, placed
+
+
+class Overflow(NamedTuple):
+    candidates: int  # close pairs beyond the candidate capacity
+    colours: int  # touching candidate pairs that MAX_COLOURS colours could not place
+
+
+def overflow(state, params=None, num_static: int = 0) -> Overflow:
+    """The pairs of one scene that a broad-phase step from `state` would leave without contacts: close pairs
+    (overlapping boxes, bodies that may collide) beyond the candidate capacity, and touching pairs the
+    colouring could not place. For tests and diagnostics, outside jit (the step keeps no counter)."""
+    from jax2d.pairs import contact_layout
+    from jax2d.state import SimParams
+    from jax2d.step import _over_pairs_and_batch, joint_connected, pair_filter
+
+    params = SimParams() if params is None else params
+    layout = contact_layout(state.num_polygons, state.num_circles, num_static)
+    M = layout.num_padded
+    scene = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)
+    may = pair_filter(layout, scene.bodies, jnp.zeros((layout.num_slots, 1), bool), M)
+    spec = jnp.full((1,), params.speculative_distance, jnp.float32)
+    rows, colours, width = rows_for(layout, 1)
+    cand = candidates(layout, scene.bodies, spec, may, colours * width - rows)
+    manifold = narrow_phase(cand, scene.bodies, spec, functools.partial(_over_pairs_and_batch, batch=(1,)),
+                            colours * width)
+    jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]
+    live = jnp.any(manifold.valid[..., 0], axis=1) & (cand.slot_kind != PADDING) & ~jointed
+    b = state.bodies
+    moving = jnp.zeros((M,), bool).at[:b.active.shape[0]].set(b.active & (b.inv_mass > 0))
+    _, placed = colour(cand, live, ~moving, M, colours, width)
+    return Overflow(int(cand.dropped), int(jnp.sum(live & ~placed)))

@@ -1,0 +1,126 @@
+"""The broad phase and per-step colouring for big scenes (jax2d.broad_phase, SolverConfig.broad_phase)."""
+
+from __future__ import annotations
+
+import functools
+import importlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jax2d
+from jax2d import broad_phase, scene
+from jax2d.pairs import contact_layout
+from tests.jax2d.scenes import pyramid, rollout
+
+step_module = importlib.import_module("jax2d.step")  # jax2d.step is the function
+STEP = jax2d.jit(jax2d.step, static_argnames="config")
+BROAD = jax2d.SolverConfig(broad_phase=True)
+ALL_PAIRS = jax2d.SolverConfig(broad_phase=False)
+
+
+def _colouring(state):
+    """The broad phase's candidates and colouring for one scene, as numpy."""
+    layout = contact_layout(state.num_polygons, state.num_circles)
+    M, S = layout.num_padded, layout.num_slots
+    b = jax.tree.map(lambda x: x[..., None], state.bodies)
+    rows, colours, width = broad_phase.rows_for(layout, 1)
+    spec = jnp.full((1,), 0.04)
+    may = step_module.pair_filter(layout, b, jnp.zeros((S, 1), bool), M)
+    cand = broad_phase.candidates(layout, b, spec, may, colours * width - rows)
+    manifold = broad_phase.narrow_phase(cand, b, spec, functools.partial(step_module._over_pairs_and_batch,
+                                                                         batch=(1,)), colours * width)
+    live = np.asarray(jnp.any(manifold.valid[..., 0], axis=1) & (cand.slot_kind != 4))
+    dyn = np.asarray(state.bodies.active & (state.bodies.inv_mass > 0))
+    shareable = jnp.asarray(np.pad(~dyn, (0, M - len(dyn)), constant_values=True))
+    solved, placed = broad_phase.colour(cand, jnp.asarray(live), shareable, M, colours, width)
+    return cand, live, np.asarray(placed), solved, np.asarray(shareable)
+
+
+def test_colouring_places_every_touching_pair_once_and_no_moving_body_twice_per_colour():
+    state, _, _ = pyramid(6)
+    cand, live, placed, solved, shareable = _colouring(state)
+    assert live.sum() > 20 and np.array_equal(placed, live)
+    order = np.asarray(solved.slot_order)
+    assert sorted(order.tolist()) == list(range(len(order)))  # a permutation of the solve positions
+    sides = np.asarray(solved.solve_sides)
+    K = solved.per_colour
+    live_at = live[np.asarray(solved.solve_slots)].reshape(solved.num_colours, K)
+    for c in range(solved.num_colours):
+        bodies = np.concatenate([sides[c, :K][live_at[c]], sides[c, K:][live_at[c]]])
+        moving = bodies[~shareable[bodies]]
+        assert len(moving) == len(set(moving.tolist())), f"colour {c} repeats a moving body"
+    # Far fewer colours than the all-pairs layout's sweeps visit (22 bodies: 21 colours, most live).
+    used = int(np.max(np.where(placed, order // K, -1))) + 1
+    assert used <= 10, used
+
+
+def test_broad_phase_step_matches_all_pairs_on_a_small_pyramid():
+    state, _, _ = pyramid(4)
+    state, _ = rollout(state, jax2d.SimParams(), 60, config=ALL_PAIRS)
+    none = (jnp.zeros(0), jnp.zeros(0))
+    a = STEP(state, jax2d.SimParams(), *none, config=ALL_PAIRS)
+    b = STEP(state, jax2d.SimParams(), *none, config=BROAD)
+    # Same contacts (slots, keys) and, warm started, the same result up to the colour order.
+    assert np.array_equal(np.asarray(a.contacts.active), np.asarray(b.contacts.active))
+    assert np.array_equal(np.asarray(a.contacts.key), np.asarray(b.contacts.key))
+    np.testing.assert_allclose(np.asarray(b.bodies.position), np.asarray(a.bodies.position), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(b.contacts.normal_impulse), np.asarray(a.contacts.normal_impulse),
+                               atol=1e-3)
+
+
+def test_overflow_is_counted_and_the_step_stays_finite():
+    # 30 circles stacked on one spot: 435 close pairs against a capacity of 4 x 30 = 120 (plus the floor's).
+    state = jax2d.empty_state(jax2d.Capacity(polygons=1, circles=30, joints=0, thrusters=0, max_vertices=4))
+    state, _ = scene.add_rectangle(state, (0.0, -0.5), 40.0, 1.0, fixed=True)
+    for i in range(30):
+        state, _ = scene.add_circle(state, (0.001 * i, 0.5), 0.5)
+    assert broad_phase.overflow(state) == (435 - 120, 0)  # the 120 kept pairs fit 32 colours
+    spaced = jax2d.empty_state(jax2d.Capacity(polygons=1, circles=30, joints=0, thrusters=0, max_vertices=4))
+    spaced, _ = scene.add_rectangle(spaced, (0.0, -0.5), 40.0, 1.0, fixed=True)
+    for i in range(30):
+        spaced, _ = scene.add_circle(spaced, (1.5 * i - 20.0, 0.5), 0.5)
+    assert broad_phase.overflow(spaced) == (0, 0)
+    out = STEP(state, jax2d.SimParams(), jnp.zeros(0), jnp.zeros(0), config=BROAD)
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(out))
+
+
+@pytest.mark.slow
+def test_big_pyramid_stands_with_the_broad_phase():
+    """210 boxes (rows of 20 down to 1) for 10 s: the broad phase is on by default above 100 bodies.
+    Today's all-pairs figures (issue 28): drift 5 mm, top box sinks 33 mm."""
+    base = 20
+    state, boxes, rows = pyramid(base)
+    assert broad_phase.uses_broad_phase(jax2d.SolverConfig().broad_phase, state.num_bodies)
+    assert broad_phase.overflow(state) == (0, 0)
+    start = np.asarray(state.bodies.position)[boxes]
+    final, rec = rollout(state, jax2d.SimParams(), 600)
+    pos = rec["position"][:, boxes]
+    drift = np.max(np.abs(pos[..., 0] - start[:, 0]))
+    top = boxes[rows == base - 1][0]
+    top_drop = start[rows == base - 1][0, 1] - np.min(rec["position"][:, top, 1])
+    sink = -np.min(pos[:, rows == 0, 1] - 0.5)
+    print(f"\n[pyramid 210 boxes, broad phase, 10 s] drift {drift * 1000:.3f} mm; top box dropped "
+          f"{top_drop * 1000:.3f} mm; deepest bottom-row sink {sink * 1000:.3f} mm")
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(final))
+    assert drift < 0.01
+    assert top_drop < 0.035
+    assert sink < 0.006
+
+
+@pytest.mark.slow
+def test_55_box_pyramid_holds_the_same_with_the_broad_phase():
+    """test_physics.test_pyramid_stays_standing's scene and thresholds, with the broad phase forced on."""
+    state, boxes, rows = pyramid(10)
+    start = np.asarray(state.bodies.position)[boxes]
+    _, rec = rollout(state, jax2d.SimParams(), 600, config=BROAD)
+    pos = rec["position"][:, boxes]
+    drift = np.max(np.abs(pos[..., 0] - start[:, 0]))
+    top = boxes[rows == 9][0]
+    top_drop = start[rows == 9][0, 1] - np.min(rec["position"][:, top, 1])
+    sink = -np.min(pos[:, rows == 0, 1] - 0.5)
+    print(f"\n[pyramid 55 boxes, broad phase, 10 s] drift {drift * 1000:.3f} mm; top box dropped "
+          f"{top_drop * 1000:.3f} mm; sink {sink * 1000:.3f} mm")
+    assert drift < 0.01 and top_drop < 0.02 and sink < 0.005

@@ -107,6 +107,9 @@ class SimState:
     thrusters: Thrusters
     contacts: Contacts
     gravity: jax.Array  # (2,)
+    # () int32: how many bodies the step that made this state froze because their result was not finite
+    # (step._store's guard keeps their old pose and stops them). 0 in a healthy run; tests assert it.
+    frozen: jax.Array
 
     @property
     def num_polygons(self) -> int:
@@ -260,4 +263,4 @@ def empty_state(capacity: Capacity, gravity=(0.0, -9.81)) -> SimState:
         active=jnp.zeros((S, 2), bool),
         separation=jnp.zeros((S, 2), f),
     )
-    return SimState(bodies, joints, thrusters, contacts, jnp.asarray(gravity, f))
+    return SimState(bodies, joints, thrusters, contacts, jnp.asarray(gravity, f), jnp.zeros((), jnp.int32))

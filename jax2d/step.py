@@ -10,7 +10,8 @@
         relax                   joints then contacts, without bias (removes bias energy)
     restitution             bounce where points hit faster than the threshold
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
-    store                   impulses for the next step; clamp and NaN guard
+    store                   impulses for the next step; clamp and NaN guard (SimState.frozen counts the
+                            bodies it froze)
 
 Inside the step every body quantity is its own array over M padded bodies
 (math2d.Vel / Pose); M is the body count rounded up to even, the extra body a
@@ -378,7 +379,11 @@ def integrate_velocities(vel: Vel, pose: Pose, dyn, inv_mass, inv_inertia, gravi
 
 
 def _store(state: SimState, params: SimParams, pose: Pose, vel: Vel, cimp, jimp, manifold, valid, dyn) -> SimState:
-    """Write the result back, clamped; a body whose result is not finite keeps its old pose and stops."""
+    """Write the result back, clamped; a body whose result is not finite keeps its old pose and stops.
+
+    The new state's `frozen` counts those bodies: the guard keeps NaN out of the scene, so without the
+    count a test that looks for NaN could not see that it fired.
+    """
     b = state.bodies
     N = b.active.shape[0]
     vx, vy, w = vel.x[:N], vel.y[:N], vel.w[:N]
@@ -409,4 +414,5 @@ def _store(state: SimState, params: SimParams, pose: Pose, vel: Vel, cimp, jimp,
         active=valid,
         separation=jnp.where(valid, finite(manifold.separation), 0.0),
     )
-    return SimState(bodies, joints, state.thrusters, contacts, state.gravity)
+    frozen = jnp.sum(moving & ~ok, dtype=jnp.int32)
+    return SimState(bodies, joints, state.thrusters, contacts, state.gravity, frozen)

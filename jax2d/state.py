@@ -195,6 +195,10 @@ class SolverConfig:
     # moving the bodies (up to a cap per step, joint_solver.MAX_SHIFT / MAX_TURN), without changing
     # velocities. None skips it; it needs joint_projection.
     joint_position_projection: float | None = 1.0
+    # The restitution stage (restitution.py): sweeps that propagate an impact through chains of touching
+    # bodies (a chain of n bodies needs n - 1 in the worst colour order), then sweeps that make the bounces.
+    impact_sweeps: int = 3
+    bounce_sweeps: int = 6
     # The first `num_static` polygons are always static (the public Kinetix walls), a promise
     # the caller keeps: pairs among them are never checked, and the contact sweeps may visit
     # them in several slots of one colour (pairs.wall_grouped), which is wrong for a moving body.

@@ -8,7 +8,7 @@
         solve                   joints then contacts, with soft position bias
         integrate positions
         relax                   joints then contacts, without bias (removes bias energy)
-    restitution             bounce where points hit faster than the threshold
+    restitution             impacts propagated through touching chains, then bounces (restitution.py)
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
     store                   impulses for the next step; clamp and NaN guard (SimState.frozen counts the
                             bodies it froze)
@@ -37,6 +37,7 @@ from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, col
 from jax2d.compact import Compact, unpack, update
 from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
+from jax2d.restitution import restitution
 from jax2d.state import COLLIDE_ALL, Bodies, Contacts, Joints, SimParams, SimState, SolverConfig, Thrusters
 
 DEFAULT_CONFIG = SolverConfig()
@@ -122,7 +123,8 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     colours = contact_solver.schedule(loop.const)
     joints = joint_solver.schedule(loop.jc)
     pose, vel, cimp, jimp = _substeps(layout, loop, colours, joints, config)
-    vel, cimp = contact_solver.restitution(layout, loop.const, cimp, vel, loop.restitution_threshold, colours)
+    vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, loop.restitution_threshold, colours,
+                            config.impact_sweeps, config.bounce_sweeps)
     if config.joint_projection is not None:
         frame = joint_solver.frame(loop.joints, loop.jc, pose)
         vel, shift = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h),
@@ -207,7 +209,7 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
     enabled = pair_filter(layout, b, jointed, M)
     valid = manifold.valid & enabled[:, None]
     cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
-                                _pad(b.friction, M), _pad(b.restitution, M))
+                                _pad(b.friction, M), _pad(b.restitution, M), state.gravity)
     cimp = contact_solver.pack_impulses(layout, _matched_impulses(state.contacts, manifold.key, valid,
                                                                   config.warm_start))
     loop = LoopData(

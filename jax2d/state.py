@@ -163,7 +163,7 @@ class SimParams:
 
     dt: float | jax.Array = 1.0 / 60.0
     # Soft contact (Box2D v3 "soft step"): stiffness in Hz and damping ratio.
-    contact_hertz: float | jax.Array = 30.0
+    contact_hertz: float | jax.Array = 60.0
     contact_damping_ratio: float | jax.Array = 10.0
     joint_hertz: float | jax.Array = 60.0
     joint_damping_ratio: float | jax.Array = 0.7  # see docs/engine.md: 2 (Box2D's) rang on spinning welded clusters

@@ -117,7 +117,7 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     jointed = jax.vmap(lambda j: joint_connected(j, M)[layout.slot_a, layout.slot_b])(states.joints)
     last = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, 0, -1))
     scene = last(states)
-    manifold = narrow_phase(layout, scene.bodies, params.speculative_distance)
+    manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, step_reach(scene, params.dt))
     loop, valid = _prepare(layout, scene, params, last(motor_actions), last(thruster_actions), manifold,
                            last(jointed), config)
     colours = contact_solver.schedule(loop.const)
@@ -267,10 +267,28 @@ def _pad(x, m):
     return jnp.pad(x, [(0, m - x.shape[0])] + [(0, 0)] * (x.ndim - 1))
 
 
-def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
+def step_reach(state: SimState, dt):
+    """(N, *batch) how far any point of each body can move in one step, batch-last: its speed, its spin times
+    its farthest point, and gravity's gain, over dt. See narrow_phase: the speculative margin of a pair is the
+    sum of its bodies' reaches on top of SimParams.speculative_distance."""
+    b = state.bodies
+    extent = jnp.concatenate([jnp.max(jnp.linalg.norm(b.vertices, axis=-2), axis=1), b.radius])
+    speed = jnp.linalg.norm(b.velocity, axis=1)
+    gain = jnp.linalg.norm(state.gravity, axis=0) * dt
+    return dt * (speed + jnp.abs(b.angular_velocity) * extent + gain)
+
+
+def narrow_phase(layout: ContactLayout, b: Bodies, speculative, reach=None) -> Manifold:
     """Manifolds for every slot, batch-last: each kind of pair is evaluated on its own constant index list.
 
-    b: bodies with the batch as the last axis of every leaf; speculative: (*batch).
+    b: bodies with the batch as the last axis of every leaf; speculative: (*batch); reach: None or (N, *batch)
+    how far each body can move in this step (step_reach).
+
+    A pair's points are kept while their separation is below the speculative distance plus both bodies'
+    reach, so a contact exists before any body can cross the gap in one step, however fast it moves (up to
+    the speed clamp): the solver removes only the approaching velocity beyond the gap (s / h), so a far
+    point costs nothing but its solve. Without the reach, a 0.1 m ball at 30 m/s passed through a 0.1 m
+    wall in 4 of 5 tries.
     Returns manifold fields with the batch last, e.g. normal (S, 2, B). The collide functions
     are written for one pair; they map over the batch as the minor axis (each of a polygon's
     V edges is then a row of B scenes) and over the pairs as the major one. With the pairs
@@ -279,33 +297,37 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative) -> Manifold:
     """
     P = b.vertices.shape[0]
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
-    spec = jnp.asarray(speculative, jnp.float32)
     batch = pos.shape[2:]
+    spec = jnp.broadcast_to(jnp.asarray(speculative, jnp.float32), batch)
+    reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
+
+    def margin(i, j):
+        return spec + reach[i] + reach[j]
 
     def over_pairs_and_batch(collide, n):
         inner = collide
         for _ in batch:  # the batch axes, innermost last
             inner = jax.vmap(inner, in_axes=(-1,) * (n + 1), out_axes=-1)
-        return jax.vmap(inner, in_axes=(0,) * n + (None,))
+        return jax.vmap(inner, in_axes=(0,) * (n + 1))
 
     kinds = layout.by_kind
     parts = []
     i, j = layout.slot_a[kinds[POLY_POLY]], layout.slot_b[kinds[POLY_POLY]]
     if len(i):
         parts.append(over_pairs_and_batch(collide_polygons, 8)(
-            pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], spec))
+            pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], margin(i, j)))
     # Polygon-circle pairs in either order share one call; circle-first pairs flip the normal.
     pc, cp = kinds[POLY_CIRCLE], kinds[CIRCLE_POLY]
     poly = np.concatenate([layout.slot_a[pc], layout.slot_b[cp]])
     circle = np.concatenate([layout.slot_b[pc], layout.slot_a[cp]])
     if len(poly):
         m = over_pairs_and_batch(collide_polygon_circle, 6)(
-            pos[poly], ang[poly], verts[poly], nv[poly], pos[circle], rad[circle - P], spec)
+            pos[poly], ang[poly], verts[poly], nv[poly], pos[circle], rad[circle - P], margin(poly, circle))
         sign = np.concatenate([np.ones(len(pc)), -np.ones(len(cp))]).astype(np.float32)
         parts.append(dataclasses.replace(m, normal=m.normal * sign.reshape((-1, 1) + (1,) * len(batch))))
     i, j = layout.slot_a[kinds[CIRCLE_CIRCLE]], layout.slot_b[kinds[CIRCLE_CIRCLE]]
     if len(i):
-        parts.append(over_pairs_and_batch(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P], spec))
+        parts.append(over_pairs_and_batch(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P], margin(i, j)))
     S = layout.num_slots
     # The row padding slots take: no point, normal (0, 1).
     empty = Manifold(jnp.array([[0.0, 1.0]]), jnp.zeros((1, 2, 2)), jnp.zeros((1, 2)),

@@ -29,6 +29,8 @@ import numpy as np
 
 import jax2d
 from jax2d import scene
+from jax2d.state import COLLIDE_ALL
+from jax2d.step import joint_connected
 from tests.jax2d import scenes
 from tests.jax2d.scenes import rollout
 
@@ -74,13 +76,14 @@ def bounce(e: float, drop: float = 1.0, seconds: float = 2.0) -> dict:
     return dict(apexes=apexes, ratios=[a / x for a, x in zip(apexes, expected, strict=False)])
 
 
-def mass_ratio(heavy: float = 100.0, light: float = 1.0, seconds: float = 5.0) -> dict:
+def mass_ratio(heavy: float = 100.0, light: float = 1.0, seconds: float = 5.0, params: jax2d.SimParams = PARAMS,
+               config: jax2d.SolverConfig = scenes.DEFAULT_CONFIG) -> dict:
     """A heavy box on a light box on the floor; overlaps after `seconds` in m (positive = sinking)."""
     side = 0.5
     state, _ = scene.add_rectangle(_empty(), (0.0, -0.5), 40.0, 1.0, fixed=True)
     state, low = scene.add_rectangle(state, (0.0, side / 2), side, side, density=light / side**2)
     state, high = scene.add_rectangle(state, (0.0, 1.5 * side), side, side, density=heavy / side**2)
-    final, rec = rollout(state, PARAMS, round(seconds / DT))
+    final, rec = rollout(state, params, round(seconds / DT), config=config)
     y = rec["position"][:, [low, high], 1].astype(np.float64)
     between = side - (y[:, 1] - y[:, 0])
     floor = side / 2 - y[:, 0]
@@ -108,7 +111,8 @@ def tunnel(speed: float, tries: int = 5, diameter: float = 0.1, thickness: float
 
 
 def _inside_static(state: jax2d.SimState) -> jax.Array:
-    """(N,) whether each active dynamic body's centre lies strictly inside some active static polygon."""
+    """(N,) whether each active dynamic body's centre lies strictly inside some active static polygon that it
+    collides with (not one it is linked to by a chain of joints, nor one its collision mode ignores)."""
     b = state.bodies
     P = state.num_polygons
     static = b.active[:P] & (b.inv_mass[:P] == 0)
@@ -127,7 +131,11 @@ def _inside_static(state: jax2d.SimState) -> jax.Array:
     used = jnp.arange(V)[None, None, :] < b.n_vertices[:, None, None]
     inside = jnp.all((cross > 0) | ~used, axis=-1)  # (P, N)
     dynamic = b.active & (b.inv_mass > 0)
-    return jnp.any(inside & static[:, None], axis=0) & dynamic
+    mode = b.collision_mode
+    collide = (mode[:P, None] == COLLIDE_ALL) | (mode[None, :] == COLLIDE_ALL) \
+        | ((mode[:P, None] > 0) & (mode[None, :] > 0))
+    linked = joint_connected(state.joints, b.active.shape[0])[:P]
+    return jnp.any(inside & static[:, None] & collide & ~linked, axis=0) & dynamic
 
 
 @functools.partial(jax2d.jit, static_argnames=("steps",))
@@ -141,7 +149,7 @@ def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int):
         motors = jnp.sign(jax.random.uniform(km, (batch, joints), minval=-1.0, maxval=1.0))  # full power
         thrusts = (jax.random.uniform(kt, (batch, thrusters)) > 0.5).astype(jnp.float32)
         s = step(s, motors, thrusts)
-        return s, (jnp.any(jax.vmap(_inside_static)(s), axis=-1), s.frozen)
+        return s, (jnp.any(jax.vmap(_inside_static)(s), axis=-1), getattr(s, "frozen", jnp.zeros(batch, jnp.int32)))
 
     _, (inside, frozen) = jax.lax.scan(body, states, jax.random.split(key, steps))
     return inside, frozen

@@ -46,3 +46,14 @@ def test_a_fast_small_ball_does_not_tunnel_through_a_thin_wall(speed):
     result = accuracy.tunnel(speed)
     print(f"\n[tunnel {speed} m/s] {result['tunnelled']} of {result['tries']} passed the wall")
     assert result["tunnelled"] == 0
+
+
+@pytest.mark.slow
+def test_walls_hold_against_motors_and_thrusters_at_full_power():
+    """16 crowded random scenes x 500 steps, motors at +-1 and thrusters on or off: no step in which a dynamic
+    body's centre is inside a static body it collides with (before issue 28: 41 of 8,000 steps, scenes 6 and
+    7). The full figure, 64 scenes x 2,000 steps, is printed by `python -m tests.jax2d.accuracy`."""
+    result = accuracy.crowded_walls(16, 500)
+    print(f"\n[crowded walls 16 x 500] {result['steps_inside']} steps with a centre inside a static body "
+          f"(scenes {result['scenes_inside']}); bodies frozen by the guard {result['frozen']}")
+    assert result["steps_inside"] == 0 and result["frozen"] == 0

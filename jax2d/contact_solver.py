@@ -1,9 +1,9 @@
-"""Contact constraints: prepare, warm start, solve / relax, restitution, store.
+"""Contact constraints: prepare, warm start, solve / relax, store (restitution: restitution.py).
 
 The stages follow Box2D v3's soft step (Catto, "Solver2D", 2024). Contacts are
 prepared once per step from the narrow phase. Each substep then warm starts,
 solves with a soft position bias, integrates positions and relaxes without the
-bias; restitution runs once at the end.
+bias; restitution runs once at the end (restitution.py, on these sweeps).
 
 Slots are solved colour by colour (see pairs.py): within a colour no body
 appears twice, so a colour is one vectorised update and the sweep is an exact

@@ -123,10 +123,11 @@ def capacities(layout: ContactLayout, batch: int) -> list[int]:
     return caps
 
 
-def boxes(b, speculative) -> jax.Array:
+def boxes(b, speculative, reach=None) -> jax.Array:
     """(4, M?, *batch) lower x, lower y, upper x, upper y of every body (batch-last bodies), grown by
-    half the speculative distance on each side, so two boxes overlap whenever the narrow phase could
-    find a point."""
+    half the speculative distance and the body's reach in the step (step.step_reach; (N, *batch) or None)
+    on each side, so two boxes overlap whenever the narrow phase could find a point (its margin is the
+    speculative distance plus both reaches)."""
     pos, ang = b.position, b.angle  # (N, 2, *batch), (N, *batch)
     P = b.vertices.shape[0]
     grow = 0.5 * jnp.asarray(speculative, jnp.float32)
@@ -142,14 +143,16 @@ def boxes(b, speculative) -> jax.Array:
     cx, cy, r = pos[P:, 0], pos[P:, 1], b.radius
     circle = jnp.stack([cx - r, cy - r, cx + r, cy + r])
     box = jnp.concatenate([poly, circle], axis=1)
+    if reach is not None:
+        grow = grow + reach
     return box + jnp.array([-1.0, -1.0, 1.0, 1.0], jnp.float32).reshape((4, 1) + (1,) * (box.ndim - 2)) * grow
 
 
-def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: int = 0) -> Candidates:
+def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: int = 0, reach=None) -> Candidates:
     """The slots whose boxes overlap in some scene (batch-last bodies) and whose bodies may collide
     (may_collide (S, *batch), pair_filter without joints), compacted per kind; then `extra_rows`
-    padding rows."""
-    box = boxes(b, speculative)
+    padding rows. reach: as in boxes."""
+    box = boxes(b, speculative, reach)
     batch = box.shape[2:]
     B = int(np.prod(batch)) if batch else 1
     S = layout.num_slots
@@ -184,23 +187,30 @@ def rows_for(layout: ContactLayout, batch: int) -> tuple[int, int, int]:
     return rows, MAX_COLOURS, width
 
 
-def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: int) -> Manifold:
-    """Manifolds of the candidate rows (batch-last), padding rows empty; total = rows with padding."""
+def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: int, reach=None) -> Manifold:
+    """Manifolds of the candidate rows (batch-last), padding rows empty; total = rows with padding. A pair's
+    margin is the speculative distance plus both bodies' reach (step.narrow_phase; reach None: zero)."""
     P = b.vertices.shape[0]
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
-    spec = jnp.asarray(speculative, jnp.float32)
     batch = pos.shape[2:]
+    spec = jnp.broadcast_to(jnp.asarray(speculative, jnp.float32), batch)
+    reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
+
+    def margin(i, j):
+        return spec + reach[i] + reach[j]
+
     parts = []
     for call, _, i, j, sign in cand.lists:
         if call == "pp":
             parts.append(over_pairs_and_batch(collide_polygons, 8)(
-                pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], spec))
+                pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], margin(i, j)))
         elif call == "pc":
             m = over_pairs_and_batch(collide_polygon_circle, 6)(pos[i], ang[i], verts[i], nv[i], pos[j], rad[j - P],
-                                                                 spec)
+                                                                 margin(i, j))
             parts.append(dataclasses.replace(m, normal=m.normal * sign.reshape((-1, 1) + (1,) * len(batch))))
         else:
-            parts.append(over_pairs_and_batch(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P], spec))
+            parts.append(over_pairs_and_batch(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P],
+                                                                  margin(i, j)))
     n = sum(x[1] for x in cand.lists)
     empty = Manifold(jnp.zeros((total - n, 2)).at[:, 1].set(1.0), jnp.zeros((total - n, 2, 2)),
                      jnp.zeros((total - n, 2)), jnp.full((total - n, 2), -1, jnp.int32),
@@ -280,7 +290,7 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     colouring could not place. For tests and diagnostics, outside jit (the step keeps no counter)."""
     from jax2d.pairs import contact_layout
     from jax2d.state import SimParams
-    from jax2d.step import _over_pairs_and_batch, joint_connected, pair_filter
+    from jax2d.step import _over_pairs_and_batch, joint_connected, pair_filter, step_reach
 
     params = SimParams() if params is None else params
     layout = contact_layout(state.num_polygons, state.num_circles, num_static)
@@ -289,9 +299,10 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     may = pair_filter(layout, scene.bodies, jnp.zeros((layout.num_slots, 1), bool), M)
     spec = jnp.full((1,), params.speculative_distance, jnp.float32)
     rows, colours, width = rows_for(layout, 1)
-    cand = candidates(layout, scene.bodies, spec, may, colours * width - rows)
+    reach = step_reach(scene, params.dt)
+    cand = candidates(layout, scene.bodies, spec, may, colours * width - rows, reach)
     manifold = narrow_phase(cand, scene.bodies, spec, functools.partial(_over_pairs_and_batch, batch=(1,)),
-                            colours * width)
+                            colours * width, reach)
     jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]
     live = jnp.any(manifold.valid[..., 0], axis=1) & (cand.slot_kind != PADDING) & ~jointed
     b = state.bodies

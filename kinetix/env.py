@@ -27,8 +27,9 @@ One agent step
 `step` auto-resets: when the episode ends, the returned obs and state are those of a fresh level from the
 reset function (drawn with the step's key), while reward, terminated, truncated and info describe the
 transition that ended it. `step_no_reset` never resets (evaluation, the browser). info holds
-`solved`, `failed`, `nan` (bool), `distance` (float32) and `timestep` (int32, the step count of the episode
-the transition belongs to, 1 on the first step).
+`solved`, `failed`, `nan` (bool), `distance` (float32), `timestep` (int32, the step count of the episode
+the transition belongs to, 1 on the first step) and `frozen` (int32, the bodies the engine's non-finite guard froze
+over the transition's physics steps, jax2d.SimState.frozen; 0 in a healthy run).
 """
 
 from __future__ import annotations
@@ -204,7 +205,7 @@ class KinetixEnv:
         obs, state = self.reset(key, unpack(params))
         false = jnp.asarray(False)
         info = {"solved": false, "failed": false, "nan": false, "distance": state.last_distance,
-                "timestep": state.timestep}
+                "timestep": state.timestep, "frozen": jnp.zeros((), jnp.int32)}
         return pack(StepOutput(obs, state, jnp.asarray(0.0, jnp.float32), false, false, info))
 
     def step_compact(self, key: jax.Array, previous: Compact, action, params: Compact) -> Compact:
@@ -244,18 +245,20 @@ class KinetixEnv:
         motor, thrust = actions_module.level_actions(level, action, self.config.action)
 
         def physics_step(carry, _):
-            sim, ended, won, lost = carry
+            sim, ended, won, lost, frozen = carry
             new_sim = jax2d.step(sim, params.sim, motor, thrust, self.config.solver)
             after = dataclasses.replace(level, sim=new_sim)
             lose = green_touches_red(after)
             win = green_touches_blue(after) & ~lose  # losing dominates a simultaneous win
             won, lost = won | (~ended & win), lost | (~ended & lose)
+            frozen = frozen + jnp.where(ended, 0, new_sim.frozen)
             sim = _select(ended, sim, new_sim)  # frozen from the first terminating substep on
-            return (sim, ended | win | lose, won, lost), None
+            return (sim, ended | win | lose, won, lost, frozen), None
 
         false = jnp.asarray(False)
-        (sim, _, won, lost), _ = jax.lax.scan(physics_step, (level.sim, false, false, false), None,
-                                              length=self.config.frame_skip)
+        zero = jnp.zeros((), jnp.int32)
+        (sim, _, won, lost, frozen), _ = jax.lax.scan(physics_step, (level.sim, false, false, false, zero), None,
+                                                      length=self.config.frame_skip)
         finite = _all_finite(sim)
         next_level = _select(finite, dataclasses.replace(level, sim=sim), level)  # roll back a non-finite step
         won, lost = won & finite, lost & finite
@@ -269,7 +272,8 @@ class KinetixEnv:
         terminated = won | lost | ~finite
         truncated = (timestep >= params.max_timesteps) & ~terminated
         next_state = EnvState(level=next_level, timestep=timestep, last_distance=distance)
-        info = {"solved": won, "failed": lost, "nan": ~finite, "distance": distance, "timestep": timestep}
+        info = {"solved": won, "failed": lost, "nan": ~finite, "distance": distance, "timestep": timestep,
+                "frozen": frozen}
         return next_state, reward, terminated, truncated, info
 
 

@@ -398,7 +398,8 @@ def build(spec: LevelSpec, size: SizeClass | None = None) -> LevelFile:
         return dataclasses.replace(struct, **{k: jnp.asarray(v) for k, v in arrays.items()})
 
     gravity = jnp.asarray([f32(spec.gravity[0]), f32(spec.gravity[1])], jnp.float32)
-    sim = SimState(as_jax(sim.bodies, b), as_jax(sim.joints, j), as_jax(sim.thrusters, t), sim.contacts, gravity)
+    sim = SimState(as_jax(sim.bodies, b), as_jax(sim.joints, j), as_jax(sim.thrusters, t), sim.contacts, gravity,
+                   sim.frozen)
     level = Level(sim, jnp.asarray(roles), jnp.asarray(motor_bindings), jnp.asarray(motor_auto),
                   jnp.asarray(thruster_bindings))
     return LevelFile(level, spec.params, size, spec.name, warnings=tuple(warnings))

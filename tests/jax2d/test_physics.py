@@ -12,6 +12,7 @@ Defaults throughout: dt = 1/60, SimParams() and SolverConfig() (4 substeps).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -438,14 +439,15 @@ def _random_run(states: jax2d.SimState, params: jax2d.SimParams, key: jax.Array,
 
     Returns the final states, whether every float leaf was finite after every step,
     per scene and body (B, N) the furthest its centre got outside the world box (-inf for
-    static bodies), and per scene the fastest any body moved.
+    static bodies), per scene the fastest any body moved, and per scene how many bodies the
+    engine's non-finite guard froze over the run (SimState.frozen summed over the steps).
     """
     batch, num_joints, num_thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
     step = jax.vmap(lambda s, p, m, t: scenes.STEP(s, p, m, t, config=config), in_axes=(0, None, 0, 0))
     dynamic = states.bodies.active & (states.bodies.inv_mass > 0)
 
     def body(carry, key):
-        s, finite, outside, speed = carry
+        s, finite, outside, speed, frozen = carry
         km, kt = jax.random.split(key)
         motors = jax.random.uniform(km, (batch, num_joints), minval=-1.0, maxval=1.0)
         thrusts = jax.random.uniform(kt, (batch, num_thrusters))
@@ -454,18 +456,19 @@ def _random_run(states: jax2d.SimState, params: jax2d.SimParams, key: jax.Array,
         out = jnp.max(jnp.maximum(-p, p - scenes.WORLD), axis=-1)  # > 0: the centre left [0, WORLD]^2
         outside = jnp.maximum(outside, jnp.where(dynamic, out, -jnp.inf))
         speed = jnp.maximum(speed, jnp.max(jnp.linalg.norm(s.bodies.velocity, axis=-1), axis=-1))
-        return (s, finite & _finite(s), outside, speed), None
+        return (s, finite & _finite(s), outside, speed, frozen + s.frozen), None
 
-    init = (states, _finite(states), jnp.full(dynamic.shape, -jnp.inf), jnp.zeros((batch,)))
-    (final, finite, outside, speed), _ = jax.lax.scan(body, init, jax.random.split(key, steps))
-    return final, finite, outside, speed
+    init = (states, _finite(states), jnp.full(dynamic.shape, -jnp.inf), jnp.zeros((batch,)),
+            jnp.zeros((batch,), jnp.int32))
+    (final, finite, outside, speed, frozen), _ = jax.lax.scan(body, init, jax.random.split(key, steps))
+    return final, finite, outside, speed, frozen
 
 
 @pytest.mark.slow
 def test_random_crowded_scenes_stay_finite():
     built = [scenes.random_scene(seed, RANDOM) for seed in range(RANDOM_SCENES)]
     states = scenes.stack([s for s, _ in built])
-    final, finite, outside, speed = _random_run(states, PARAMS, jax.random.key(0))
+    final, finite, outside, speed, frozen = _random_run(states, PARAMS, jax.random.key(0))
     # A body linked to a wall through a chain of joints does not collide with that wall, so it may
     # legitimately swing through it (scene seed 7 does): only the other bodies must stay inside.
     linked = np.stack([_linked_to_walls(state) for state, _ in built])
@@ -478,7 +481,8 @@ def test_random_crowded_scenes_stay_finite():
         gaps += [g[slot] for slot, both_dynamic in joints if both_dynamic]
         gap_scene += [i for _, both_dynamic in joints if both_dynamic]
     gaps = np.array(gaps)
-    print(f"\n[random scenes {RANDOM_SCENES} x {RANDOM_STEPS} steps] all finite {bool(finite)}; furthest centre "
+    print(f"\n[random scenes {RANDOM_SCENES} x {RANDOM_STEPS} steps] all finite {bool(finite)}; "
+          f"bodies frozen by the guard {int(np.sum(frozen))}; furthest centre "
           f"outside the {scenes.WORLD:.0f} m box {max(outside.max(), 0) * 1000:.1f} mm "
           f"({int(np.sum(outside > 0))} scenes with a centre outside); max speed {speed.max():.2f} m/s; "
           f"dynamic-dynamic joint gaps at end ({len(gaps)} joints): median {np.median(gaps) * 1000:.3f} mm, "
@@ -488,6 +492,9 @@ def test_random_crowded_scenes_stay_finite():
           f"{np.nonzero(speed >= 0.99 * PARAMS.max_linear_speed)[0].tolist()}; scenes with a centre more than a wall "
           f"thickness outside {np.nonzero(outside >= scenes.WALL)[0].tolist()}")
     assert bool(finite)
+    # The store's guard freezes a body whose result is not finite, which keeps NaN out of the state: the
+    # count shows whether it fired.
+    assert not np.asarray(frozen).any(), f"guard froze bodies in scenes {np.nonzero(np.asarray(frozen))[0].tolist()}"
     RANDOM_RESULTS.update(outside=outside, gaps=gaps)
 
 
@@ -522,9 +529,9 @@ def test_crowded_scenes_hold_with_the_walls_repeating_in_colours():
     config = jax2d.SolverConfig(num_static=4)
     assert contact_layout(RANDOM.polygons, RANDOM.circles, 4).walls_repeat
     built = [scenes.random_scene(seed, RANDOM) for seed in range(16)]
-    final, finite, outside, _ = _random_run(scenes.stack([s for s, _ in built]), PARAMS, jax.random.key(3),
-                                            steps=1000, config=config)
-    assert bool(finite)
+    final, finite, outside, _, frozen = _random_run(scenes.stack([s for s, _ in built]), PARAMS,
+                                                    jax.random.key(3), steps=1000, config=config)
+    assert bool(finite) and not np.asarray(frozen).any()
     linked = np.stack([_linked_to_walls(state) for state, _ in built])
     assert np.max(np.where(linked, -np.inf, np.asarray(outside))) < scenes.WALL
     gaps = [scenes.anchor_gaps(state, np.asarray(scenes.unstack(final, i).bodies.position),
@@ -658,6 +665,24 @@ def test_same_inputs_give_bitwise_identical_trajectories():
     assert moved > 0.01  # the scene is not trivially at rest
     for a, b in zip(jax.tree.leaves((first_final, first)), jax.tree.leaves((second_final, second)), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_the_guard_counts_the_bodies_it_freezes():
+    """A body whose step result is not finite keeps its pose and stops; SimState.frozen counts it, so the
+    random-scene and level tests that assert it is 0 would see the guard fire."""
+    state, _ = add_floor(small_state())
+    state, bad = scene.add_circle(state, (0.0, 1.0), 0.1)
+    state, good = scene.add_circle(state, (1.0, 1.0), 0.1)
+    bodies = state.bodies
+    state = dataclasses.replace(state, bodies=dataclasses.replace(
+        bodies, velocity=bodies.velocity.at[bad].set(jnp.array([jnp.nan, 0.0]))))
+    zeros = (np.zeros(SMALL.joints, np.float32), np.zeros(SMALL.thrusters, np.float32))
+    after = scenes.STEP(state, PARAMS, *zeros)
+    assert int(after.frozen) == 1
+    np.testing.assert_array_equal(np.asarray(after.bodies.position[bad]), np.asarray(state.bodies.position[bad]))
+    assert np.all(np.asarray(after.bodies.velocity[bad]) == 0.0)
+    assert float(after.bodies.position[good, 1]) < 1.0  # the other ball falls as usual
+    assert int(scenes.STEP(after, PARAMS, *zeros).frozen) == 0  # stopped, it is finite again
 
 
 # ---------------------------------------------------------------- 12. resting box

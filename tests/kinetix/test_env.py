@@ -127,6 +127,7 @@ def test_green_falling_onto_blue_wins(step_no_reset):
     assert float(reward) == 1.0 and bool(terminated) and not bool(truncated)
     assert bool(info["solved"]) and not bool(info["failed"]) and not bool(info["nan"])
     assert int(info["timestep"]) == t == int(state.timestep)
+    assert int(info["frozen"]) == 0  # the engine's non-finite guard did not fire
     # Free fall of 10 cm takes sqrt(2 * 0.1 / g) = 0.143 s = 4.3 agent steps of 2 / 60 s, so it ends within steps 4-7.
     assert 4 <= t <= 7
 
@@ -273,6 +274,21 @@ def test_nan_in_the_scene_ends_the_episode_without_propagating(step, step_no_res
     obs, new, *_ = step(KEY, state, NOOP, params)  # with auto-reset the episode starts afresh
     for leaf in jax.tree.leaves((obs, new)):
         assert np.all(np.isfinite(np.asarray(leaf, np.float32)))
+
+
+def test_info_counts_the_bodies_the_engines_guard_froze(step_no_reset):
+    """A NaN velocity makes the ball's step result non-finite: the engine's guard keeps its pose and stops it
+    (the state stays finite, so info["nan"] stays False), and info["frozen"] shows that it fired."""
+    level = drifting_ball(1.0)
+    ball = level.sim.num_polygons
+    bodies = level.sim.bodies
+    bad = dataclasses.replace(bodies, velocity=bodies.velocity.at[ball].set(jnp.array([jnp.nan, 0.0])))
+    state = start(dataclasses.replace(level, sim=dataclasses.replace(level.sim, bodies=bad)))
+    _, new, _, terminated, _, info = step_no_reset(KEY, state, NOOP, EnvParams())
+    assert int(info["frozen"]) == 1 and not bool(info["nan"]) and not bool(terminated)
+    np.testing.assert_array_equal(new.level.sim.bodies.position[ball], level.sim.bodies.position[ball])
+    _, _, _, _, _, info = step_no_reset(KEY, new, NOOP, EnvParams())
+    assert int(info["frozen"]) == 0
 
 
 # ---------------------------------------------------------------- construction

@@ -29,23 +29,24 @@ MAX_GAP_P99 = 0.01  # m, the 99th percentile over the run of a level's largest g
 
 @jax2d.jit
 def _run(states: jax2d.SimState, key: jax.Array):
-    """Per level: largest joint gap at each step (STEPS, B), fastest body (B,), all floats finite (B,)."""
+    """Per level: largest joint gap at each step (STEPS, B), fastest body (B,), all floats finite (B,), bodies
+    frozen by the engine's non-finite guard over the run (B,)."""
     batch, joints, thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
     step = jax.vmap(lambda s, m, t: jax2d.step(s, jax2d.SimParams(), m, t))
 
     finite = jax.vmap(all_finite)
 
     def body(carry, key):
-        s, speed, ok = carry
+        s, speed, ok, frozen = carry
         km, kt = jax.random.split(key)
         s = step(s, jax.random.uniform(km, (batch, joints), minval=-1.0, maxval=1.0),
                  jax.random.uniform(kt, (batch, thrusters)))
         speed = jnp.maximum(speed, jnp.max(jnp.linalg.norm(s.bodies.velocity, axis=-1), axis=-1))
-        return (s, speed, ok & finite(s)), jnp.max(jax.vmap(joint_gaps)(s), axis=-1, initial=0.0)
+        return (s, speed, ok & finite(s), frozen + s.frozen), jnp.max(jax.vmap(joint_gaps)(s), axis=-1, initial=0.0)
 
-    (_, speed, ok), gaps = jax.lax.scan(body, (states, jnp.zeros(batch), finite(states)),
-                                        jax.random.split(key, STEPS))
-    return gaps, speed, ok
+    (_, speed, ok, frozen), gaps = jax.lax.scan(body, (states, jnp.zeros(batch), finite(states),
+                                                       jnp.zeros(batch, jnp.int32)), jax.random.split(key, STEPS))
+    return gaps, speed, ok, frozen
 
 
 @pytest.mark.slow
@@ -59,12 +60,13 @@ def test_joints_stay_attached_in_public_and_generated_levels(shared_dir):
     names += [f"generated seed {seed}" for seed in range(GENERATED)]
     assert sum(int(np.sum(np.asarray(s.joints.active))) for s in sims) > 100, "too few joints to say anything"
 
-    gaps, speed, ok = _run(jax.tree.map(lambda *x: jnp.stack(x), *sims), jax.random.key(1))
-    gaps, speed, ok = np.asarray(gaps), np.asarray(speed), np.asarray(ok)
+    gaps, speed, ok, frozen = _run(jax.tree.map(lambda *x: jnp.stack(x), *sims), jax.random.key(1))
+    gaps, speed, ok, frozen = np.asarray(gaps), np.asarray(speed), np.asarray(ok), np.asarray(frozen)
     worst, p99 = gaps.max(axis=0), np.percentile(gaps, 99, axis=0)
     print(f"\n[{len(names)} levels x {STEPS} steps] largest joint gap {worst.max() * 1000:.1f} mm "
           f"({names[int(worst.argmax())]}); largest p99 {p99.max() * 1000:.1f} mm; fastest body {speed.max():.1f} m/s")
     assert ok.all(), f"not finite: {[n for n, good in zip(names, ok, strict=True) if not good]}"
+    assert not frozen.any(), f"guard froze bodies: {[(n, int(f)) for n, f in zip(names, frozen, strict=True) if f]}"
     too_far = {n: round(float(g), 3) for n, g in zip(names, worst, strict=True) if g >= MAX_GAP}
     assert not too_far, f"joints came apart (largest gap, m): {too_far}"
     strained = {n: round(float(g), 3) for n, g in zip(names, p99, strict=True) if g >= MAX_GAP_P99}

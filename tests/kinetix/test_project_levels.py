@@ -250,13 +250,14 @@ def in_world(sim: jax2d.SimState) -> jax.Array:
 
 def run_episode(level: Level, params: jax2d.SimParams, policies, policy_index, key):
     """One episode of one policy: physics steps of the first win and first loss (NEVER if none), whether the state
-    stayed finite and in the world, the largest joint gap, and the deepest overlap found by the first step."""
+    stayed finite and in the world, the largest joint gap, the deepest overlap found by the first step, and how many
+    bodies the engine's non-finite guard froze (SimState.frozen, summed over the steps)."""
 
     def with_sim(sim):
         return Level(sim, level.roles, level.motor_bindings, level.motor_auto, level.thruster_bindings)
 
     def physics_step(carry, step):
-        sim, motor, thrust, first_win, first_loss, finite, inside, gap = carry
+        sim, motor, thrust, first_win, first_loss, finite, inside, gap, frozen = carry
         t = step // FRAME_SKIP
         new_motor, new_thrust = jax.lax.switch(policy_index, policies, t, sim, key)
         act_now = step % FRAME_SKIP == 0  # the agent acts every FRAME_SKIP physics steps; actions are held between
@@ -266,18 +267,18 @@ def run_episode(level: Level, params: jax2d.SimParams, policies, policy_index, k
         first_win = jnp.where((first_win == NEVER) & green_touches_blue(with_sim(sim)), step, first_win)
         first_loss = jnp.where((first_loss == NEVER) & green_touches_red(with_sim(sim)), step, first_loss)
         carry = (sim, motor, thrust, first_win, first_loss, finite & all_finite(sim), inside & in_world(sim),
-                 jnp.maximum(gap, jnp.max(joint_gaps(sim), initial=0.0)))
+                 jnp.maximum(gap, jnp.max(joint_gaps(sim), initial=0.0)), frozen + sim.frozen)
         overlap = -jnp.min(jnp.where(sim.contacts.active, sim.contacts.separation, 0.0), initial=0.0)
         return carry, overlap
 
     zero_motor, zero_thrust = drive()
     never = jnp.int32(NEVER)
     start = (level.sim, zero_motor, zero_thrust, never, never, all_finite(level.sim), in_world(level.sim),
-             jnp.max(joint_gaps(level.sim), initial=0.0))
-    (_, _, _, first_win, first_loss, finite, inside, gap), overlaps = jax.lax.scan(
+             jnp.max(joint_gaps(level.sim), initial=0.0), jnp.int32(0))
+    (_, _, _, first_win, first_loss, finite, inside, gap, frozen), overlaps = jax.lax.scan(
         physics_step, start, jnp.arange(PHYSICS_STEPS))
     return dict(first_win=first_win, first_loss=first_loss, finite=finite, in_world=inside, max_joint_gap=gap,
-                initial_overlap=overlaps[0])
+                initial_overlap=overlaps[0], frozen=frozen)
 
 
 @functools.cache
@@ -352,6 +353,7 @@ def test_doing_nothing_does_not_solve_the_level(path):
 def test_level_stays_physically_sane(path, policy):
     run = results(path.stem, policy)
     assert run["finite"], "the state became NaN or infinite"
+    assert run["frozen"] == 0, f"the engine's non-finite guard froze {run['frozen']} bodies"
     assert run["in_world"], "a body left the world box"
     assert run["max_joint_gap"] < MAX_JOINT_GAP, f"a joint came apart by {run['max_joint_gap']:.3f} m"
     assert run["initial_overlap"] < MAX_INITIAL_OVERLAP, f"bodies start {run['initial_overlap']:.3f} m deep"

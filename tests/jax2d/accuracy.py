@@ -1,0 +1,179 @@
+"""The accuracy scenes of issue 28, shared by test_accuracy.py and its full report.
+
+    python -m tests.jax2d.accuracy            # every figure, with the full crowded-scene count
+
+Each scene returns plain numbers, so the tests assert on them and the report prints them.
+Scenes (all with the defaults: dt = 1/60, SimParams(), SolverConfig()):
+- cradle: three balls of radius 0.1 m, restitution 1, friction 0, no gravity, in a row on the x axis;
+  the second and third touch, the first comes from 0.3 m away at 3 m/s. There is no string
+  or floor: what is measured is the chain of impacts alone (a pendulum cradle adds gravity's
+  slow swing, which changes nothing in the collisions). Kinetic energy after / before and the
+  final velocities after 1 s; correct: 1 and (0, 0, 3).
+- bounce: a ball of radius 0.1 m dropped from 1 m onto a static floor; the heights of its first
+  two bounces against e^2 h and e^4 h.
+- mass ratio: a 1 kg box (0.5 m) on the floor and a 100 kg box of the same size on it; after 5 s
+  the overlap between the boxes and of the lower box with the floor.
+- tunnel: a ball of diameter 0.1 m shot at a static wall 0.1 m thick, no gravity, from 5 start
+  distances spread over one step's travel; how many end on the far side.
+- crowded walls: the random crowded scenes of test_physics (motors and thrusters at full power);
+  per step and scene, whether some dynamic body's centre is inside a static body.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jax2d
+from jax2d import scene
+from jax2d.state import COLLIDE_ALL
+from jax2d.step import joint_connected
+from tests.jax2d import scenes
+from tests.jax2d.scenes import rollout
+
+PARAMS = jax2d.SimParams()
+DT = 1.0 / 60.0
+LITTLE = jax2d.Capacity(polygons=3, circles=3, joints=0, thrusters=0, max_vertices=4)
+
+
+def _empty(gravity=(0.0, -9.81)) -> jax2d.SimState:
+    return jax2d.empty_state(LITTLE, gravity=gravity)
+
+
+def cradle(speed: float = 3.0, seconds: float = 1.0) -> dict:
+    """Three-ball Newton's cradle without strings (see the module docstring)."""
+    radius = 0.1
+    state = _empty(gravity=(0.0, 0.0))
+    balls = []
+    for x, v in ((-0.3 - 2 * radius, speed), (0.0, 0.0), (2 * radius, 0.0)):
+        state, i = scene.add_circle(state, (x, 0.0), radius, restitution=1.0, friction=0.0, velocity=(v, 0.0))
+        balls.append(i)
+    mass, _ = scene.body_mass_properties(state, balls[0])
+    final, _ = rollout(state, PARAMS, round(seconds / DT))
+    v = np.asarray(final.bodies.velocity)[balls]
+    w = np.asarray(final.bodies.angular_velocity)[balls]
+    energy = 0.5 * mass * np.sum(v**2)
+    return dict(energy_ratio=float(energy / (0.5 * mass * speed**2)), velocities=v[:, 0].tolist(),
+                spin=float(np.abs(w).max()), frozen=int(final.frozen))
+
+
+def bounce(e: float, drop: float = 1.0, seconds: float = 2.0) -> dict:
+    """A ball dropped from `drop` m (its bottom) on a floor; both have restitution e."""
+    radius = 0.1
+    state, _ = scene.add_rectangle(_empty(), (0.0, -0.5), 40.0, 1.0, fixed=True, restitution=e)
+    state, ball = scene.add_circle(state, (0.0, drop + radius), radius, restitution=e)
+    _, rec = rollout(state, PARAMS, round(seconds / DT))
+    bottom = rec["position"][:, ball, 1].astype(np.float64) - radius
+    vy = rec["velocity"][:, ball, 1]
+    apexes = []
+    for k in range(1, len(vy) - 1):  # a rise that turns into a fall: the top of a bounce
+        if vy[k - 1] > 0 >= vy[k] and len(apexes) < 2:
+            apexes.append(float(bottom[k - 1:k + 1].max()))
+    expected = [e**2 * drop, e**4 * drop]
+    return dict(apexes=apexes, ratios=[a / x for a, x in zip(apexes, expected, strict=False)])
+
+
+def mass_ratio(heavy: float = 100.0, light: float = 1.0, seconds: float = 5.0, params: jax2d.SimParams = PARAMS,
+               config: jax2d.SolverConfig = scenes.DEFAULT_CONFIG) -> dict:
+    """A heavy box on a light box on the floor; overlaps after `seconds` in m (positive = sinking)."""
+    side = 0.5
+    state, _ = scene.add_rectangle(_empty(), (0.0, -0.5), 40.0, 1.0, fixed=True)
+    state, low = scene.add_rectangle(state, (0.0, side / 2), side, side, density=light / side**2)
+    state, high = scene.add_rectangle(state, (0.0, 1.5 * side), side, side, density=heavy / side**2)
+    final, rec = rollout(state, params, round(seconds / DT), config=config)
+    y = rec["position"][:, [low, high], 1].astype(np.float64)
+    between = side - (y[:, 1] - y[:, 0])
+    floor = side / 2 - y[:, 0]
+    return dict(between=float(between[-1]), floor=float(floor[-1]), worst_between=float(between.max()),
+                worst_floor=float(floor.max()), x_drift=float(np.abs(rec["position"][-1, [low, high], 0]).max()),
+                frozen=int(final.frozen))
+
+
+def tunnel(speed: float, tries: int = 5, diameter: float = 0.1, thickness: float = 0.1) -> dict:
+    """A ball shot along x at a static wall (its near face at x = 0); how many of `tries` end behind it."""
+    radius = diameter / 2
+    travel = speed * DT
+    through = []
+    for k in range(tries):
+        state = _empty(gravity=(0.0, 0.0))
+        state, _ = scene.add_rectangle(state, (thickness / 2, 0.0), thickness, 2.0, fixed=True)
+        start = -radius - 0.2 - travel * (k + 0.5) / tries  # every phase of a step's travel
+        state, ball = scene.add_circle(state, (start, 0.0), radius, velocity=(speed, 0.0))
+        _, rec = rollout(state, PARAMS, scenes.CHUNK)  # 1 s
+        through.append(bool(np.any(rec["position"][:, ball, 0] > thickness / 2)))
+    return dict(tunnelled=int(sum(through)), tries=tries)
+
+
+# ---------------------------------------------------------------- walls against motors
+
+
+def _inside_static(state: jax2d.SimState) -> jax.Array:
+    """(N,) whether each active dynamic body's centre lies strictly inside some active static polygon that it
+    collides with (not one it is linked to by a chain of joints, nor one its collision mode ignores)."""
+    b = state.bodies
+    P = state.num_polygons
+    static = b.active[:P] & (b.inv_mass[:P] == 0)
+    cos, sin = jnp.cos(b.angle[:P]), jnp.sin(b.angle[:P])
+    d = b.position[None, :, :] - b.position[:P, None, :]  # (P, N, 2) centre relative to polygon p
+    lx = cos[:, None] * d[..., 0] + sin[:, None] * d[..., 1]
+    ly = -sin[:, None] * d[..., 0] + cos[:, None] * d[..., 1]
+    v = b.vertices  # (P, V, 2)
+    V = v.shape[1]
+    nxt = jnp.roll(v, -1, axis=1)
+    nxt = jnp.where((jnp.arange(V)[None, :] == b.n_vertices[:, None] - 1)[..., None], v[:, :1], nxt)
+    edge = nxt - v
+    # Inside a convex counter-clockwise polygon: left of every edge.
+    cross = edge[:, None, :, 0] * (ly[..., None] - v[:, None, :, 1]) - edge[:, None, :, 1] * (lx[..., None]
+                                                                                          - v[:, None, :, 0])
+    used = jnp.arange(V)[None, None, :] < b.n_vertices[:, None, None]
+    inside = jnp.all((cross > 0) | ~used, axis=-1)  # (P, N)
+    dynamic = b.active & (b.inv_mass > 0)
+    mode = b.collision_mode
+    collide = (mode[:P, None] == COLLIDE_ALL) | (mode[None, :] == COLLIDE_ALL) \
+        | ((mode[:P, None] > 0) & (mode[None, :] > 0))
+    linked = joint_connected(state.joints, b.active.shape[0])[:P]
+    return jnp.any(inside & static[:, None] & collide & ~linked, axis=0) & dynamic
+
+
+@functools.partial(jax2d.jit, static_argnames=("steps",))
+def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int):
+    """Random actions at full power; per step and scene whether a centre is inside a static body (steps, B)."""
+    batch, joints, thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
+    step = jax.vmap(lambda s, m, t: scenes.STEP(s, PARAMS, m, t))
+
+    def body(s, key):
+        km, kt = jax.random.split(key)
+        motors = jnp.sign(jax.random.uniform(km, (batch, joints), minval=-1.0, maxval=1.0))  # full power
+        thrusts = (jax.random.uniform(kt, (batch, thrusters)) > 0.5).astype(jnp.float32)
+        s = step(s, motors, thrusts)
+        return s, (jnp.any(jax.vmap(_inside_static)(s), axis=-1), getattr(s, "frozen", jnp.zeros(batch, jnp.int32)))
+
+    _, (inside, frozen) = jax.lax.scan(body, states, jax.random.split(key, steps))
+    return inside, frozen
+
+
+def crowded_walls(scene_count: int = 64, steps: int = 2000, seed: int = 0) -> dict:
+    """Steps (of scene_count x steps) in which some dynamic centre is inside a static body, and the scenes."""
+    capacity = jax2d.Capacity(polygons=12, circles=4, joints=6, thrusters=2, max_vertices=8)
+    built = [scenes.random_scene(s, capacity)[0] for s in range(scene_count)]
+    inside, frozen = _crowded_run(scenes.stack(built), jax.random.key(seed), steps)
+    inside = np.asarray(inside)
+    return dict(steps_inside=int(inside.sum()), scenes_inside=np.nonzero(inside.any(axis=0))[0].tolist(),
+                total=inside.size, frozen=int(np.asarray(frozen).sum()))
+
+
+def main() -> None:
+    print("cradle", cradle())
+    for e in (0.5, 0.8, 1.0):
+        print(f"bounce e={e}", bounce(e))
+    print("mass ratio 100:1", mass_ratio())
+    for speed in (10.0, 30.0, 60.0, 100.0):
+        print(f"tunnel {speed} m/s", tunnel(speed))
+    print("crowded walls 64 x 2000", crowded_walls())
+
+
+if __name__ == "__main__":
+    main()

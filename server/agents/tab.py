@@ -16,7 +16,7 @@ Specialists and runs belong to someone (issue 26; docs/agents.md, "Training belo
   (worker terminated) when the tab closes, and its specialist is offered in that tab only and deleted with it,
   unless the tab saves the level as its own copy meanwhile (then it is attached to that copy).
 - Each tab trains on behalf of a client (its author identity, else the tab itself): the pool's per-client limits
-  and round-robin queue (server.training) use it.
+  and round-robin queue (server.agents.training) use it.
 
 Plays: Watch agent plays are recorded by the gallery link (kind "agent", the session's player is
 "agent:<name>"). A race records both of its plays itself when it is decided (kind "human" and kind "agent"); the
@@ -41,9 +41,9 @@ from urllib.parse import parse_qs
 import numpy as np
 from PIL import Image, ImageDraw
 
-from server.agent_play import WINNER_TEXT, AgentController, AgentRunner, RaceController
-from server.session import PlayListener
-from server.training import TrainingJob, TrainingPool
+from server.agents.play import WINNER_TEXT, AgentController, AgentRunner, RaceController
+from server.agents.training import TrainingJob, TrainingPool
+from server.play.session import PlayListener
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ class AgentLink:
         from server.gallery.runs import BestRuns
 
         self.store = store
-        self.recorder = recorder  # server.recorder.PlayRecorder: a race's human solve keeps its recording
+        self.recorder = recorder  # server.recordings.recorder.PlayRecorder: a race's human solve keeps its recording
         self.runs = BestRuns(store) if store is not None and store.recordings_dir is not None else None
         self.agents_dir = Path(agents_dir)
         self.level_agents = LevelAgents(store, self.agents_dir) if store is not None else None
@@ -209,7 +209,7 @@ class AgentLink:
         raise ValueError(f"no agent {choice!r} for this level")
 
     def runner(self, session, choice: str | None = None, policy=None) -> AgentRunner:
-        from server.play import stepper_for
+        from server.play.steps import stepper_for
 
         label, spec = self.resolve(session, choice) if policy is None else (policy.name, policy.name)
         level_file = session.editor.level_file()
@@ -230,7 +230,7 @@ class AgentLink:
 
     def race(self, session, choice: str | None = None, policy=None) -> RaceController:
         """Start a race: the human plays the left half with the keys, the agent the right half."""
-        from server.play import stepper_for
+        from server.play.steps import stepper_for
 
         runner = self.runner(session, choice, policy)
         level_file = session.editor.level_file()

@@ -204,7 +204,7 @@ class Editor:
 
     def load_draft(self, spec: LevelSpec, size: SizeClass, undo: list[tuple[LevelSpec, SizeClass]],
                    redo: list[tuple[LevelSpec, SizeClass]]) -> None:
-        """Become a saved draft (server.drafts): this level and these undo/redo stacks, oldest first.
+        """Become a saved draft (server.drafts.store): this level and these undo/redo stacks, oldest first.
 
         Only the current level is built (LevelError if it does not build): the undo steps were built when made."""
         file = build(spec, size)

@@ -11,7 +11,7 @@ directory holds a checkpoint, so a row never points at a half-written run.
 
 Only the level's author attaches (a decision of issue 26): `attach` needs the author token that owns the level
 (or `admin=True`, for server-side tools), checked in the same transaction as the insert. Everyone who opens the
-level sees its specialists, so anyone else's agent must not land there; it stays with its tab (server.agent_tab).
+level sees its specialists, so anyone else's agent must not land there; it stays with its tab (server.agents.tab).
 """
 
 from __future__ import annotations

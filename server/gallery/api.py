@@ -7,10 +7,10 @@ anything is parsed; their schemas are still published in the OpenAPI description
 JSON `{"detail": "what is wrong"}` and stores nothing. Store calls block, so they run in the thread pool.
 
 Cross-site and abuse rules: a body must be `Content-Type: application/json` (415 otherwise), so a page on another
-site cannot send one with a "simple" form or text/plain request (server.web_security checks `Origin` too); writes
+site cannot send one with a "simple" form or text/plain request (server.web.security checks `Origin` too); writes
 and new identities are rate-limited per client (429 with Retry-After, server.gallery.limits); play statistics are
 not accepted from clients at all: the server records the plays it ran itself (`Store.record_play`, from
-server.gallery.tab). A browser's voter identity is a server-issued HttpOnly, SameSite=Strict cookie.
+server.play.gallery_tab). A browser's voter identity is a server-issued HttpOnly, SameSite=Strict cookie.
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ import time
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from server.session import Session
+    from server.play.session import Session
 
 log = logging.getLogger(__name__)
 

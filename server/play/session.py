@@ -1,13 +1,13 @@
 """One session per browser tab: its editor, play state and lock; and the manager that owns them.
 
 Threading: viser runs plain callbacks on a thread pool and they can overlap, so every entry point takes the
-session's lock. Playing sessions are stepped and drawn by the manager's one play thread (server.scheduler),
+session's lock. Playing sessions are stepped and drawn by the manager's one play thread (server.play.scheduler),
 which batches sessions that are due together. Key events arrive from the side server's event loop
 (`key_event`), update the held-key set and wake the play thread at once; it steps that session and pushes a
 frame right away and then flushes, so a key reaches the wire within a few milliseconds instead of waiting for
 the next tick.
 
-Frames: rendered by server.draw at the canvas size (letterboxed, never stretched) and pushed as the scene
+Frames: rendered by server.play.draw at the canvas size (letterboxed, never stretched) and pushed as the scene
 background (JPEG). While playing: every agent step (30 per second for the default dt 1/60 and frame skip 2).
 While editing: only when the editor's revision, the canvas size or the message changes.
 """
@@ -25,9 +25,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from server import draw
-from server.play import DEFAULT_CLOCKWISE, PLAY_KEYS, action_from_keys, stepper_for
-from server.scheduler import PlayScheduler
+from server.play import draw
+from server.play.scheduler import PlayScheduler
+from server.play.steps import DEFAULT_CLOCKWISE, PLAY_KEYS, action_from_keys, stepper_for
 
 log = logging.getLogger(__name__)
 
@@ -71,10 +71,10 @@ class PlayListener:
 
     def level_changed(self, session: Session) -> None:
         """The edited level or its undo history may have changed (after an edit-mode frame, and when the tab's
-        gallery level changes); runs with the session's lock held. server.draft_tab keeps drafts with it."""
+        gallery level changes); runs with the session's lock held. server.drafts.tab keeps drafts with it."""
 
     def session_opened(self, session: Session) -> None:
-        """A tab's session was built (its GUI exists): add per-tab GUI here (e.g. server.replay's panel)."""
+        """A tab's session was built (its GUI exists): add per-tab GUI here (e.g. server.recordings.replay's panel)."""
 
     def session_closed(self, session: Session) -> None:
         """The tab went away (a running play was ended as "stopped" just before)."""
@@ -218,7 +218,7 @@ class Session:
         self.author_token: str | None = None  # the tab's gallery author token (from localStorage, via /keys)
         self._gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
-        self.replay = None  # a server.replay.Replay while the tab shows a recording (mode "replay")
+        self.replay = None  # a server.recordings.replay.Replay while the tab shows a recording (mode "replay")
         self.ended_player = "human"  # the player of the last play that ended (see _finish_step)
         self._build_gui()
         self._wire_pointer()
@@ -341,7 +341,7 @@ class Session:
                 return
             self.last_key_seq = max(self.last_key_seq, seq)
             if self.mode == "replay" and self.replay is not None and kind == "down" and self.replay.on_key(code, shift):
-                return  # ←/→ step the replay (server.replay)
+                return  # ←/→ step the replay (server.recordings.replay)
             if kind == "down" and code == "Space" and not (ctrl or alt or meta):
                 self.toggle_play()
                 return
@@ -452,7 +452,7 @@ class Session:
         with self.lock:
             if self.mode == "edit":
                 return
-            if self.mode == "replay":  # leaving a replay (server.replay): no play to end
+            if self.mode == "replay":  # leaving a replay (server.recordings.replay): no play to end
                 replay, self.replay = self.replay, None
                 if replay is not None:
                     replay.stop()
@@ -505,7 +505,7 @@ class Session:
         self._again_button.visible = self.mode == "ended"
         self._edit_button.visible = self.mode in ("ended", "ready")
 
-    # ------------------------------------------------------------------ the play loop (run by server.scheduler)
+    # ------------------------------------------------------------------ the play loop (run by server.play.scheduler)
 
     def _plan(self, now: float) -> StepPlan:
         """Decide this tick: step (with the action to take), push a key-acknowledging frame, wait, or drop."""

@@ -6,7 +6,7 @@
 - **Replay last play** and **Replay a file (.mcap)** (an upload): open a `Replay`;
 - a status line for what went wrong (a bad upload: not MCAP, not ours, truncated, too large).
 
-A `Replay` puts the session in mode "replay" (no editing, no play) and draws, with server.draw, the scene of
+A `Replay` puts the session in mode "replay" (no editing, no play) and draws, with server.play.draw, the scene of
 kinetix.recording.recorded_level(recording, step): the recorded states, no re-simulation (and no JAX call per
 frame: Replay.scene_at sets the recorded positions and angles in numpy), so scrubbing to any step is immediate.
 Its timeline ("Replay" folder, at the top of the panel while a replay is open): Play/Pause, a "Replay step"
@@ -15,7 +15,7 @@ steps), as the HUD's "step k/N" does. ←/→ step back and forward (Shift: 10 s
 with the slider focused or not (keys reach the session through keys.js). Space, Esc, Play or Close replay leave
 it. A thread per replay advances the step at the recorded pace times the speed.
 
-`open_best_run(session, path, title)` is what `/?level=<id>&mode=replay` calls (server.gallery.tab).
+`open_best_run(session, path, title)` is what `/?level=<id>&mode=replay` calls (server.play.gallery_tab).
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ import time
 from pathlib import Path
 
 from kinetix.recording import Recording, RecordingError, read_recording, recorded_level
-from server import draw
-from server.session import PlayListener, Session
+from server.play import draw
+from server.play.session import PlayListener, Session
 
 log = logging.getLogger(__name__)
 
@@ -365,7 +365,7 @@ class RecordingPanel(PlayListener):
     """Adds the Recordings/Replay folders to every session (see the module docstring)."""
 
     def __init__(self, recorder):
-        self.recorder = recorder  # server.recorder.PlayRecorder
+        self.recorder = recorder  # server.recordings.recorder.PlayRecorder
         self.panels: dict[int, SessionPanel] = {}
 
     def session_opened(self, session: Session) -> None:

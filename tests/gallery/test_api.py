@@ -131,7 +131,7 @@ def test_plays_and_stats(client, store):
     level_id = create(client)["id"]
     plays = [("human", True, 100, 3.5), ("human", True, 80, 2.5), ("human", False, 300, 9.0), ("agent", True, 50, 1),
              ("agent", False, 256, 4)]
-    for kind, solved, steps, seconds in plays:  # as the server's sessions record them (server.gallery.tab)
+    for kind, solved, steps, seconds in plays:  # as the server's sessions record them (server.play.gallery_tab)
         # Only the 3.5 s solve comes with a recording verified by replay (server.gallery.runs): a record.
         kept = f"best-{level_id}-a.mcap" if seconds == 3.5 else None
         assert isinstance(store.record_play(level_id, kind, solved=solved, steps=steps, seconds=seconds,

@@ -1,4 +1,4 @@
-"""Drafts on the server (server/drafts.py, server/draft_tab.py): the store, the document, and a tab reopening its
+"""Drafts on the server (server/drafts/store.py, server/drafts/tab.py): the store, the document, and a tab reopening its
 draft with the undo history, at the protocol level (the browser tests are in tests/e2e/test_reload_in_browser.py)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import time
 import pytest
 from viser_client import KeysSocket, ViserTestClient, session_nonce
 
-from server.drafts import DraftError, DraftStore, draft_document, read_draft, snapshot_json
+from server.drafts.store import DraftError, DraftStore, draft_document, read_draft, snapshot_json
 from server.editor import Editor
 from tests.server.conftest import running_app, wait_until
 

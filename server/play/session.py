@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
-import dataclasses
 import logging
 import math
 import secrets
@@ -26,7 +25,7 @@ from collections.abc import Callable
 import numpy as np
 
 from server.play import draw
-from server.play.scheduler import PlayScheduler
+from server.play.scheduler import PlayScheduler, StepPlan
 from server.play.steps import DEFAULT_CLOCKWISE, PLAY_KEYS, action_from_keys, stepper_for
 
 log = logging.getLogger(__name__)
@@ -100,20 +99,6 @@ class Controller:
     def draw(self, session: Session, view: draw.View, banner: str) -> np.ndarray | None:
         """A play frame of its own (e.g. an overlay, a race's two halves), or None for the usual one."""
         return None
-
-
-@dataclasses.dataclass
-class StepPlan:
-    """What the play scheduler should do for a session this tick (Session._plan)."""
-
-    kind: str  # "step" | "frame" (push a frame acknowledging a key) | "wait" | "drop" (no longer playing)
-    next_tick: float | None = None  # when the session is next due (perf_counter seconds), if it plays
-    stepper: object = None
-    state: object = None
-    params: object = None
-    action: np.ndarray | None = None
-    play_id: int = 0
-    ack: bool = False
 
 
 def default_editor_factory() -> Callable:
@@ -219,7 +204,7 @@ class Session:
         self._gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self.replay = None  # a server.recordings.replay.Replay while the tab shows a recording (mode "replay")
-        self.ended_player = "human"  # the player of the last play that ended (see _finish_step)
+        self.ended_player = "human"  # the player of the last play that ended (see finish_step)
         self._build_gui()
         self._wire_pointer()
         self.refresh(force=True)
@@ -507,7 +492,7 @@ class Session:
 
     # ------------------------------------------------------------------ the play loop (run by server.play.scheduler)
 
-    def _plan(self, now: float) -> StepPlan:
+    def plan(self, now: float) -> StepPlan:
         """Decide this tick: step (with the action to take), push a key-acknowledging frame, wait, or drop."""
         with self.lock:
             if self.closed or self.mode == "edit" or self._play is None:
@@ -548,7 +533,7 @@ class Session:
             self.stop()
             return None
 
-    def _finish_step(self, plan: StepPlan, state, result) -> None:
+    def finish_step(self, plan: StepPlan, state, result) -> None:
         """Take the stepped state (unless the play was stopped or restarted meanwhile) and push its frame."""
         with self.lock:
             if self.closed or self.mode == "edit" or plan.play_id != self._play_id:
@@ -589,7 +574,7 @@ class Session:
         except Exception:  # a tab that went away, or a test double without notifications
             log.debug("could not notify the tab of its failed play", exc_info=True)
 
-    def _push_ack_frame(self) -> None:
+    def push_ack_frame(self) -> None:
         with self.lock:
             if not self.closed and self.mode != "edit":
                 self._push_frame(ack=True, background=True)

@@ -80,8 +80,8 @@ class _FakeSession:
         self.stepper, self.state, self.params, self.left = stepper, state, params, ticks
         self.done = []
 
-    def _plan(self, now):
-        from server.play.session import StepPlan
+    def plan(self, now):
+        from server.play.scheduler import StepPlan
 
         if self.left == 0:
             return StepPlan("drop")
@@ -89,7 +89,7 @@ class _FakeSession:
         return StepPlan("step", next_tick=now, stepper=self.stepper, state=self.state, params=self.params,
                         action=np.zeros(6, np.int32))
 
-    def _finish_step(self, plan, state, result):
+    def finish_step(self, plan, state, result):
         self.done.append(result.timestep)
         self.state = state
 

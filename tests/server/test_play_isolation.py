@@ -13,8 +13,7 @@ from fake_editor import FakeEditor
 from kinetix.formats import BodySpec, describe
 from kinetix.level import LevelParams, empty_level
 from server.play import steps
-from server.play.scheduler import PlayScheduler
-from server.play.session import StepPlan
+from server.play.scheduler import PlayScheduler, StepPlan
 from tests.server.conftest import running_app, session_of, wait_until
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -126,14 +125,14 @@ class _FakeSession:
         self.done: list[int] = []
         self.failed: list[str] = []
 
-    def _plan(self, now):
+    def plan(self, now):
         if self.left == 0 or self.failed:
             return StepPlan("drop")
         self.left -= 1
         return StepPlan("step", next_tick=now, stepper=self.stepper, state=self.state, params=self.params,
                         action=np.zeros(6, np.int32), play_id=1)
 
-    def _finish_step(self, plan, state, result):
+    def finish_step(self, plan, state, result):
         self.done.append(result.timestep)
         self.state = state
 
@@ -208,7 +207,7 @@ def test_a_session_whose_plan_raises_is_ended_and_the_others_go_on():
             return StepPlan("drop")
         raise KeyError("plan")
 
-    broken._plan = plan
+    broken.plan = plan
     _run([broken, good])
     assert good.done == [1, 2, 3] and broken.failed == ["KeyError: 'plan'"]
 

@@ -74,6 +74,7 @@ class App:
         self.training = None  # the TrainingPool, with agents on
         self.agents = None  # the AgentLink, with agents on
         self.drafts = None  # the DraftStore, with drafts on
+        self.warmup = None  # the background compiles (server.play.warmup.WarmUp), once started
 
     @property
     def port(self) -> int:
@@ -89,9 +90,9 @@ class App:
         import uvicorn
         import viser
 
-        from server.play import steps
         from server.play.memory import keep_frame_buffers_resident
         from server.play.session import SessionManager
+        from server.play.warmup import WarmUp
         from server.web.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
         from server.web.security import allowed_hosts_for
 
@@ -114,23 +115,12 @@ class App:
             raise RuntimeError(f"cannot listen on {self.config.host}:{self.config.port}: {error.strerror}") from None
         sock.listen(128)
         self._socket = sock
-        for size in self.config.warm_sizes:
-            t0 = time.perf_counter()
-            steps.warm_up((size,))
-            log.info("compiled the play step for size %s in %.1f s", size, time.perf_counter() - t0)
-        # The malloc thresholds that keep frame buffers resident also keep XLA's compile-time memory: set them
-        # after the background compiles (measured peak RSS, sizes s/m/l, 8 tabs: 1433 MB before, 1209 MB after).
-        # The general agent is compiled after the batched steps, on the same chain (one compile at a time).
-        after_compiles = keep_frame_buffers_resident
-        if self.config.agents and self.config.warm_agent and self.config.warm_sizes:
-            from server.agents.play import warm_in_background
-
-            sizes = self.config.warm_sizes
-            after_compiles = lambda: warm_in_background(sizes, then=keep_frame_buffers_resident)  # noqa: E731
-        if self.config.warm_batches and self.config.warm_sizes:
-            steps.warm_batches_in_background(self.config.warm_sizes, then=after_compiles)
-        else:
-            after_compiles()
+        # Every compile runs after the server answers (server.play.warmup): the play steps of warm_sizes first, then
+        # their batched steps, then the general agent, one at a time on one background thread.
+        agent = None
+        if self.config.agents and self.config.warm_agent:
+            from server.agents.play import warm_agent as agent
+        self.warmup = WarmUp(self.config.warm_sizes, batches=self.config.warm_batches, agent=agent)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
             # Loopback only, whatever --host says: the one port the user gave is the only one others can reach.
             self.viser = viser.ViserServer(host=VISER_HOST, port=0, verbose=False)
@@ -146,7 +136,7 @@ class App:
         self.viser.scene.configure_environment_map(hdri=None)
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
                                       editor_factory=self.config.editor_factory,
-                                      initial_level=self._initial_level())
+                                      initial_level=self._initial_level(), warmup=self.warmup)
         router = self._gallery_router()
         if self.recorder is None:
             self._start_recordings()
@@ -168,7 +158,15 @@ class App:
         if not self._uvicorn.started:
             self.stop()
             raise RuntimeError("the side server did not start")
+        # The malloc thresholds that keep frame buffers resident also keep XLA's compile-time memory: set them
+        # after the compiles (measured peak RSS, sizes s/m/l, 8 tabs: 1433 MB before, 1209 MB after).
+        self.warmup.start(then=keep_frame_buffers_resident)
         return self
+
+    def wait_until_warm(self, timeout: float | None = 600, everything: bool = False) -> bool:
+        """Block until the play steps of warm_sizes (with `everything`, also the batched steps and the agent) are
+        compiled; False on timeout. Tests and benchmarks that play at once call it; the server itself never waits."""
+        return self.warmup is None or self.warmup.wait(timeout, sizes_only=not everything)
 
     def _initial_level(self):
         if not self.config.level:
@@ -293,7 +291,6 @@ def serve(args) -> int:
                     identity_limit=getattr(args, "identity_limit", None),
                     recent_max_files=getattr(args, "recent_recordings", None),
                     recent_max_bytes=_megabytes(getattr(args, "recent_recordings_mb", None)))
-    print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()
     except (RuntimeError, ValueError) as error:
@@ -302,6 +299,8 @@ def serve(args) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     print(f"Open {app.url}", flush=True)
+    print("Compiling the physics for play in the background (a first start takes longer; later starts use the "
+          "cache)...", flush=True)
     try:
         while not stop.wait(0.5):
             pass

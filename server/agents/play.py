@@ -334,24 +334,32 @@ def _winner_banner(frame: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(image)
 
 
-def warm_in_background(sizes=("s", "m", "l"), spec: str = "general", then: Callable[[], None] | None = None):
-    """Compile the observe-and-act function of `spec` for these size classes on a background compile thread."""
+def warm_agent(sizes=("s", "m", "l"), spec: str = "general") -> None:
+    """Compile the observe-and-act function of `spec` for these size classes now (server.play.warmup runs it
+    after the play steps, on its background thread)."""
     from kinetix.level import LevelFile, LevelParams, empty_level, size_class
     from server.play import steps
 
+    for name in sizes:
+        try:
+            size = size_class(name)
+            runner = AgentRunner(spec, size)
+            stepper = steps.stepper_for(LevelFile(empty_level(size), LevelParams()))
+            state, _ = stepper.start(LevelFile(empty_level(size), LevelParams()))
+            t0 = time.perf_counter()
+            runner.act(state)
+            runner.act(state)
+            log.info("compiled agent %s for size %s in %.1f s", spec, name, time.perf_counter() - t0)
+        except Exception:  # e.g. no general agent in this checkout: watching it then reports the error
+            log.exception("could not compile agent %s for size %s", spec, name)
+
+
+def warm_in_background(sizes=("s", "m", "l"), spec: str = "general", then: Callable[[], None] | None = None):
+    """`warm_agent` on a background compile thread, then `then()` there."""
+    from server.play import steps
+
     def compile_all() -> None:
-        for name in sizes:
-            try:
-                size = size_class(name)
-                runner = AgentRunner(spec, size)
-                stepper = steps.stepper_for(LevelFile(empty_level(size), LevelParams()))
-                state, _ = stepper.start(LevelFile(empty_level(size), LevelParams()))
-                t0 = time.perf_counter()
-                runner.act(state)
-                runner.act(state)
-                log.info("compiled agent %s for size %s in %.1f s", spec, name, time.perf_counter() - t0)
-            except Exception:  # e.g. no general agent in this checkout: watching it then reports the error
-                log.exception("could not compile agent %s for size %s", spec, name)
+        warm_agent(sizes, spec)
         if then is not None:
             then()
 

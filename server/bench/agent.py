@@ -56,6 +56,7 @@ def watch_fps(agent: str | None, size_name: str, seconds: float) -> dict:
     from server.app import App, Config
 
     app = App(Config(port=0, gallery=False, warm_sizes=(size_name,), warm_batches=False, warm_agent=False)).start()
+    app.wait_until_warm()
     try:
         client = ViserTestClient(app.viser.get_port(), 640, 480)
         nonce = session_nonce(client)

@@ -43,6 +43,7 @@ def _run(record: bool, seconds: float) -> dict:
     with tempfile.TemporaryDirectory() as data:
         app = App(Config(port=0, gallery=False, warm_sizes=("m",), warm_batches=False, level=str(LEVEL),
                          data=Path(data), record=record)).start()
+        app.wait_until_warm()
         stepped, pushed, started = [], [], []
         _timed(app.recorder, "play_stepped", stepped)
         _timed(app.recorder, "frame_pushed", pushed)

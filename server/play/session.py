@@ -27,6 +27,7 @@ import numpy as np
 from server.play import draw
 from server.play.scheduler import PlayScheduler, StepPlan
 from server.play.steps import DEFAULT_CLOCKWISE, PLAY_KEYS, action_from_keys, stepper_for
+from server.play.warmup import PREPARING
 
 log = logging.getLogger(__name__)
 
@@ -197,6 +198,7 @@ class Session:
         self._pending_push = None  # the Future of this session's frame being encoded and sent, if any
         self._next_tick: float | None = None
         self._message: str | None = None
+        self._waiting_play: tuple | None = None  # (controller, wait) of a play asked for before its step compiled
         self._pushed_key = None  # what the last edit-mode frame showed, to push only on change
         self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
         self._view = draw.View(512, 512)
@@ -396,6 +398,8 @@ class Session:
                 self.stop()
             try:
                 level_file = self.editor.level_file()
+                if self._wait_for_warmup(level_file.size.name, controller, wait):
+                    return
                 stepper = stepper_for(level_file)
                 state, params = stepper.start(level_file)
             except Exception as error:  # e.g. the level does not build; say why instead of playing
@@ -422,6 +426,30 @@ class Session:
             if wait:
                 self.refresh(force=True)
 
+    def _wait_for_warmup(self, size: str, controller: Controller | None, wait: bool) -> bool:
+        """True if this size class's play step is still compiling at start-up: the play then starts by itself when it
+        is ready (the tab says "preparing the simulation" meanwhile); asking again only updates what to start."""
+        warmup = self.manager.warmup
+        if warmup is None or warmup.ready(size):
+            return False
+        first = self._waiting_play is None
+        self._waiting_play = (controller, wait)
+        if first and not warmup.when_ready(size, self._warmup_ready):
+            self._waiting_play = None
+            return False
+        self._message = f"{PREPARING} (size {size}): the play starts when it is ready"
+        self.refresh(force=True)
+        return True
+
+    def _warmup_ready(self) -> None:
+        """The play step this tab waited for is compiled: start the play it asked for (on the warm-up thread)."""
+        with self.lock:
+            if self.closed or self._waiting_play is None:
+                return
+            (controller, wait), self._waiting_play = self._waiting_play, None
+            self._message = None
+            self.play(controller, wait=wait)
+
     def _start(self) -> None:
         """A waiting play starts now: its first step comes at once (or with the key that started it)."""
         if self.mode != "ready":
@@ -436,6 +464,9 @@ class Session:
         """Back to editing; the edited level is shown again as it was before playing."""
         with self.lock:
             if self.mode == "edit":
+                if self._waiting_play is not None:  # Esc or Edit before the step compiled: do not start it then
+                    self._waiting_play, self._message = None, None
+                    self.refresh(force=True)
                 return
             if self.mode == "replay":  # leaving a replay (server.recordings.replay): no play to end
                 replay, self.replay = self.replay, None
@@ -595,7 +626,8 @@ class Session:
 
     def hud(self) -> str:
         if self.mode == "edit":
-            return f"EDIT  tool: {getattr(self.editor, 'tool', '?')}   Space: play"
+            preparing = self.manager.preparing()
+            return f"EDIT  tool: {getattr(self.editor, 'tool', '?')}   " + (preparing or "Space: play")
         stepper, state, params = self._play
         seconds = self._steps * float(params.sim.dt) * stepper.frame_skip
         if self.controller is not None:
@@ -631,7 +663,8 @@ class Session:
         with self.lock:
             if self.closed or self.mode not in ("edit", "ready"):  # a waiting play is redrawn like an edit
                 return
-            key = (getattr(self.editor, "revision", None), self._canvas(), self._message, self.mode)
+            key = (getattr(self.editor, "revision", None), self._canvas(), self._message, self.mode,
+                   self.manager.preparing())
             if not force and key == self._pushed_key:
                 return
             self._pushed_key = key
@@ -709,8 +742,12 @@ class SessionManager:
     """All sessions of one server: created on viser connect, removed on disconnect, capped at `max_sessions`."""
 
     def __init__(self, server, *, max_sessions: int = 8, initial_level: Callable | None = None,
-                 editor_factory: Callable | None = None):
+                 editor_factory: Callable | None = None, warmup=None):
         self.server = server
+        # The server's background compiles (server.play.warmup.WarmUp), or None: every play step compiles on use.
+        self.warmup = warmup
+        if warmup is not None:
+            warmup.on_progress(self._warmup_progressed)
         self.editor_factory = editor_factory  # (level, size=) -> Editor; default server.editor.Editor
         # (session, "?level=...&mode=play") -> None: set by the gallery integration to open a level from the URL.
         self.on_query: Callable[[Session, str], None] | None = None
@@ -731,6 +768,18 @@ class SessionManager:
         self._gone: set[int] = set()
         server.on_client_connect(self._connect)
         server.on_client_disconnect(self._disconnect)
+
+    def _warmup_progressed(self) -> None:
+        """Redraw the tabs that show the warm-up's progress (on the warm-up thread)."""
+        with self._lock:
+            sessions = list(self.sessions.values())
+        for session in sessions:
+            session.refresh()
+
+    def preparing(self) -> str | None:
+        """"preparing the simulation: compiling size m: 2 of 5" while the server compiles, else None."""
+        progress = None if self.warmup is None else self.warmup.progress()
+        return None if progress is None else f"{PREPARING}: {progress}"
 
     def _connect(self, client) -> None:
         with self._lock:  # reserve the slot now: sessions take a moment to build and connects can overlap

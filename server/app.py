@@ -90,8 +90,8 @@ class App:
         import uvicorn
         import viser
 
+        from server.play.manager import SessionManager
         from server.play.memory import keep_frame_buffers_resident
-        from server.play.session import SessionManager
         from server.play.warmup import WarmUp
         from server.web.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
         from server.web.security import allowed_hosts_for

@@ -29,7 +29,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from server.play import draw
-from server.play.session import Controller, episode_end
+from server.play.hooks import Controller, episode_end
 
 log = logging.getLogger(__name__)
 

@@ -43,7 +43,7 @@ from PIL import Image, ImageDraw
 
 from server.agents.play import WINNER_TEXT, AgentController, AgentRunner, RaceController
 from server.agents.training import TrainingJob, TrainingPool
-from server.play.session import PlayListener
+from server.play.hooks import PlayListener
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ import threading
 from urllib.parse import parse_qs, urlencode
 
 from server.drafts.store import DraftError, DraftStore, draft_document, snapshot_json, valid_id
-from server.play.session import PlayListener
+from server.play.hooks import PlayListener
 
 log = logging.getLogger(__name__)
 

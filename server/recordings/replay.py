@@ -30,7 +30,8 @@ from pathlib import Path
 
 from kinetix.recording import Recording, RecordingError, read_recording, recorded_level
 from server.play import draw
-from server.play.session import PlayListener, Session
+from server.play.hooks import PlayListener
+from server.play.session import Session
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,7 @@ class Replay:
             session.stop()  # ends a play, or an earlier replay
             session.mode = "replay"
             session.replay = self
-            session._set_buttons()
+            session.set_buttons()
         self._thread.start()
 
     def stop(self) -> None:
@@ -174,7 +175,7 @@ class Replay:
                 step, dirty, playing = math.floor(self.position), self._dirty, self.playing
                 self._dirty = False
             before = now
-            canvas = self.session._canvas() if self.session.client is not None else None
+            canvas = self.session.canvas() if self.session.client is not None else None
             if canvas != self._canvas:  # the tab was resized: redraw even while paused
                 self._canvas, dirty = canvas, True
             if dirty:
@@ -212,7 +213,7 @@ class Replay:
         banner = ""
         if step == self.last and self._result:
             banner = f"{RESULT_TEXT[self._result]}\n{(step + 1) * self.tick:.2f} s, {step + 1} steps"
-        frame = draw.draw_frame(self._scene, session._canvas(), hud=hud, banner=banner)
+        frame = draw.draw_frame(self._scene, session.canvas(), hud=hud, banner=banner)
         with self._send_lock:  # stop() waits for a send in progress, so no replay frame lands after the edit frame
             if self._stopping:
                 return

@@ -2,7 +2,9 @@
 that draws or drives a session.
 
 The imports are read from the source with ast (nothing is imported), including the ones inside functions: a lazy
-import hides a cycle from the interpreter but not from the reader, and tomorrow's refactor may hoist it.
+import hides a cycle from the interpreter but not from the reader, and tomorrow's refactor may hoist it. Imports
+under `if TYPE_CHECKING:` (annotations only, never run) are left out of the cycle check, except for the scheduler,
+which must not name the session at all: it works through the Playable protocol.
 """
 
 from __future__ import annotations
@@ -30,11 +32,25 @@ def server_modules() -> dict[str, Path]:
     return {module_name(path): path for path in SERVER.rglob("*.py")}
 
 
-def imports_of(path: Path, name: str, known: set[str]) -> set[str]:
-    """Every module `name` imports (resolved to a module of `known` where the target is one, else the name given)."""
+def _type_checking_blocks(tree: ast.AST) -> set[int]:
+    """ids of the import nodes inside `if TYPE_CHECKING:` blocks."""
+    inside: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            inside.update(id(child) for stmt in node.body for child in ast.walk(stmt))
+    return inside
+
+
+def imports_of(path: Path, name: str, known: set[str], typing: bool = False) -> set[str]:
+    """Every module `name` imports (resolved to a module of `known` where the target is one, else the name given);
+    with `typing`, also the imports made for annotations only (under `if TYPE_CHECKING:`)."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    skip = set() if typing else _type_checking_blocks(tree)
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -48,10 +64,10 @@ def imports_of(path: Path, name: str, known: set[str]) -> set[str]:
     return found
 
 
-def import_graph() -> dict[str, set[str]]:
+def import_graph(typing: bool = False) -> dict[str, set[str]]:
     modules = server_modules()
     known = set(modules)
-    return {name: imports_of(path, name, known) for name, path in modules.items()}
+    return {name: imports_of(path, name, known, typing) for name, path in modules.items()}
 
 
 def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -101,7 +117,9 @@ def test_imports_are_read_from_the_source():
     graph = import_graph()
     assert "server.play.draw" in graph["server.play.session"]
     assert "server.play.scheduler" in graph["server.play.session"]
-    assert "server.play.steps" in graph["server.app"]  # a lazy `from server.play import steps`, resolved
+    assert "server.play.steps" in graph["server.play.warmup"]  # a lazy `from server.play import steps`, resolved
+    assert "server.play.manager" not in graph["server.play.session"]  # for annotations only
+    assert "server.play.manager" in import_graph(typing=True)["server.play.session"]
 
 
 def test_no_import_cycle_in_server():
@@ -110,7 +128,7 @@ def test_no_import_cycle_in_server():
 
 
 def test_the_scheduler_does_not_import_the_session():
-    assert "server.play.session" not in reachable(import_graph(), "server.play.scheduler")
+    assert "server.play.session" not in reachable(import_graph(typing=True), "server.play.scheduler")
 
 
 def test_gallery_storage_reaches_nothing_that_draws_or_drives_a_session():

@@ -22,7 +22,9 @@ from pathlib import Path
 
 from sqlalchemy import BigInteger, Column, Float, Integer, MetaData, String, Table, select
 
-from server.gallery.store import Forbidden, Invalid, NotFound, Store, Unauthorized, check_id, levels_t, now_ms
+from server.gallery.checks import Forbidden, Invalid, NotFound, Unauthorized, check_id
+from server.gallery.schema import levels_t, now_ms
+from server.gallery.store import Store
 
 CHECKPOINT_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 MAX_AGENT_NAME = 64

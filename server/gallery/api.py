@@ -22,9 +22,10 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from server.gallery.checks import SIZES, SORTS, StoreError, Unauthorized, check_admin
 from server.gallery.limits import RateLimited, RateLimits
 from server.gallery.runs import BestRuns
-from server.gallery.store import SIZES, SORTS, Store, StoreError, Unauthorized, check_admin
+from server.gallery.store import Store
 
 MAX_BODY = 1_000_000  # bytes
 VOTER_COOKIE = "kinetix_voter"  # a voter token (an author token) issued by the server, HttpOnly

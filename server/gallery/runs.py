@@ -23,8 +23,10 @@ from pathlib import Path
 
 from sqlalchemy import and_, select, update
 
+from server.gallery.checks import StoreError, check_id
 from server.gallery.proof import why_not_a_record
-from server.gallery.store import Store, StoreError, check_id, plays_t
+from server.gallery.schema import plays_t
+from server.gallery.store import Store
 
 log = logging.getLogger(__name__)
 

@@ -23,8 +23,9 @@ import json
 import logging
 from urllib.parse import parse_qs
 
+from server.gallery.checks import StoreError, Unauthorized
 from server.gallery.runs import BestRuns
-from server.gallery.store import Store, StoreError, Unauthorized
+from server.gallery.store import Store
 
 log = logging.getLogger(__name__)
 

@@ -196,7 +196,7 @@ def test_unknown_ids_and_bad_inputs(client, store):
         response = client.request(method, path, json=body, headers=headers)
         assert response.status_code == 404, (method, path, response.text)
         assert "no level" in response.json()["detail"] or response.status_code == 404
-    from server.gallery.store import Invalid
+    from server.gallery.checks import Invalid
 
     for kwargs, message in [(dict(kind="robot", solved=True, steps=1, seconds=1), "kind"),
                             (dict(kind="human", solved=1, steps=1, seconds=1), "solved"),

@@ -182,10 +182,13 @@ class App:
             return None
         from server.gallery.api import make_router
         from server.gallery.limits import RateLimits
-        from server.gallery.store import open_store
+        from server.gallery.store import REPO_LEVELS, open_store
         from server.play.gallery_tab import GalleryLink
 
-        self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir())
+        # A new gallery gets the project's levels after the server answers (a thumbnail each: ~13 s from an empty
+        # JAX cache), as the first warm-up task; a tab opened meanwhile shows the progress.
+        self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir(), seed_dir=None)
+        self.warmup.prepend("the gallery's levels", lambda: self.store.seed(REPO_LEVELS))
         self._start_recordings()
         link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
         link.attach(self.manager)

@@ -37,12 +37,19 @@ class WarmUp:
         self._agent = agent
         if agent is not None and self.sizes:
             self.tasks.append(("agent", ""))
+        self._calls: dict[str, Callable[[], object]] = {}  # label -> work added with prepend
         self._done = 0
         self._current: tuple[str, str] | None = None
         self._ready: set[str] = set()
         self._finished = threading.Event()
         self._lock = threading.Lock()
         self._waiting: list[tuple[str | None, Callable[[], None]]] = []  # (size or None for "any news", callback)
+
+    def prepend(self, label: str, work: Callable[[], object]) -> None:
+        """Run `work()` before the compiles (e.g. adding the project's levels to a new gallery, which renders a
+        thumbnail for each); `label` names it in the progress ("preparing <label>: 1 of 6"). Before start() only."""
+        self._calls[label] = work
+        self.tasks.insert(0, ("call", label))
 
     # ------------------------------------------------------------------ what sessions ask
 
@@ -54,12 +61,19 @@ class WarmUp:
 
     def progress(self) -> str | None:
         """e.g. "compiling size m: 2 of 5", "compiling the batched steps: 4 of 5"; None once every task is done."""
+        if not self.tasks:
+            return None
         with self._lock:
             if self._finished.is_set():
                 return None
-            kind, size = self._current or self.tasks[min(self._done, len(self.tasks) - 1)]
-            what = {"size": f"size {size}", "batches": "the batched steps", "agent": "the agent"}[kind]
-            return f"compiling {what}: {self._done + 1} of {len(self.tasks)}"
+            task = self._current or self.tasks[min(self._done, len(self.tasks) - 1)]
+            return f"{self._label(task)}: {self._done + 1} of {len(self.tasks)}"
+
+    @staticmethod
+    def _label(task: tuple[str, str]) -> str:
+        kind, size = task
+        return {"size": f"compiling size {size}", "batches": "compiling the batched steps",
+                "agent": "compiling the agent", "call": f"preparing {size}"}[kind]
 
     def when_ready(self, size: str, callback: Callable[[], None]) -> bool:
         """Call `callback()` (on the warm-up thread) once `size` is ready; False (and no call) if it is already."""
@@ -107,9 +121,9 @@ class WarmUp:
             t0 = time.perf_counter()
             try:
                 self._compile(*task)
-                log.info("compiled %s in %.1f s", " ".join(filter(None, task)), time.perf_counter() - t0)
+                log.info("warm-up: %s done in %.1f s", self._label(task), time.perf_counter() - t0)
             except Exception:  # a failed compile is logged; a play of that size then compiles on first use
-                log.exception("warm-up of %s failed", " ".join(filter(None, task)))
+                log.exception("warm-up: %s failed", self._label(task))
             with self._lock:
                 self._done += 1
                 if task[0] == "size":
@@ -128,6 +142,8 @@ class WarmUp:
 
         if kind == "size":
             steps.warm_up((size,), frame_skip=self.frame_skip)
+        elif kind == "call":
+            self._calls[size]()
         elif kind == "batches":
             steps.warm_batches((*self.sizes,), frame_skip=self.frame_skip)
         else:

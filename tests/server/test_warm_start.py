@@ -81,3 +81,12 @@ def test_progress_counts_every_task_in_order():
     assert seen[-1] is None and started == [True]
     assert warm.ready("xl")  # a size class not warmed at start compiles on its first play, as before
     assert not warm.when_ready("m", lambda: None)  # already ready: nothing to wait for
+
+
+def test_work_prepended_runs_first_and_is_named_in_the_progress():
+    warm = WarmUp(("s",), batches=False)
+    warm._compile = lambda kind, size, real=warm._compile: real(kind, size) if kind == "call" else None
+    seen = []
+    warm.prepend("the gallery's levels", lambda: seen.append(warm.progress()))
+    warm.start().join(timeout=10)
+    assert seen == ["preparing the gallery's levels: 1 of 2"] and warm.finished and warm.ready("s")

@@ -250,6 +250,8 @@ class App:
     def stop(self) -> None:
         from server.play import steps
 
+        if self.warmup is not None:
+            self.warmup.cancel()  # a stop during the first start's compiles waits for one compile, not all of them
         if self.manager is not None:
             self.manager.close_all()
         if self.drafts is not None:

@@ -42,6 +42,7 @@ class WarmUp:
         self._current: tuple[str, str] | None = None
         self._ready: set[str] = set()
         self._finished = threading.Event()
+        self._cancelled = threading.Event()
         self._lock = threading.Lock()
         self._waiting: list[tuple[str | None, Callable[[], None]]] = []  # (size or None for "any news", callback)
 
@@ -113,8 +114,15 @@ class WarmUp:
 
         return steps._start_compile(self._run, then)
 
+    def cancel(self) -> None:
+        """Skip the tasks not started yet (the server is stopping: only the compile under way is waited for)."""
+        self._cancelled.set()
+
     def _run(self, then: Callable[[], None] | None) -> None:
         for task in self.tasks:
+            if self._cancelled.is_set():
+                log.info("warm-up: %s skipped (the server is stopping)", self._label(task))
+                continue
             with self._lock:
                 self._current = task
             self._notify(None)

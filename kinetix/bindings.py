@@ -2,7 +2,7 @@
 
 Joints and thrusters do not get their own actions: each listens to a binding (as in the public
 Kinetix), so one policy output drives every joint bound to it. `expand_actions` is pure jnp (jit and vmap
-freely); `clockwise_values` reads one level on the host (for the keyboard's mapping, server.play).
+freely); `clockwise_values` reads one level on the host (for the keyboard's mapping, server.play.steps).
 """
 
 from __future__ import annotations

@@ -135,7 +135,7 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
                              "s,m,l; another size compiles when first played)")
     parser.add_argument("--no-record", dest="record", action="store_false",
                         help="do not record plays (default: every play is recorded to <data>/recordings)")
-    # Web safety (server/web_security.py, server/gallery/limits.py); None keeps the server's defaults.
+    # Web safety (server/web/security.py, server/gallery/limits.py); None keeps the server's defaults.
     parser.add_argument("--allowed-hosts", type=comma_list(str), default=[], metavar="NAMES",
                         help="host names or addresses clients may use in the URL besides the --host address, "
                              "localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS rebinding)")
@@ -282,7 +282,7 @@ COMMANDS: list[Command] = [
     Command(
         ("bench", "server"),
         "measure the browser server: draw time, key-to-frame latency in Chromium, fps and RSS with 8 sessions",
-        "server.bench:run",
+        "server.bench.server:run",
         _bench_server_arguments,
     ),
     Command(("serve",), "start the browser editor and playground", "server.app:serve", _serve_arguments),

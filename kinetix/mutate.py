@@ -20,30 +20,33 @@ import jax.numpy as jnp
 
 from jax2d.state import Contacts
 from kinetix.generate import (
-    DEFAULT_PARAMS,
+    valid_masks,
+)
+from kinetix.geometry import (
     HULL,
-    NUM_WALLS,
-    PROPOSAL_DRAWS,
-    THRUSTER_DRAWS,
     WORLD_BOTTOM,
     WORLD_LEFT,
     WORLD_RIGHT,
     WORLD_TOP,
+    body_hulls,
+    groups_from_joints,
+    joint_groups,
+    set_fixed,
+    wall_mask,
+    world_hulls,
+)
+from kinetix.level import NUM_WALLS, ROLE_GREEN, ROLE_NONE, ROLE_RED, Level, SizeClass, size_class
+from kinetix.placement import (
+    DEFAULT_PARAMS,
+    PROPOSAL_DRAWS,
+    THRUSTER_DRAWS,
     GeneratorParams,
     Stream,
     add_body,
     add_body_draws,
     add_thruster,
-    body_hulls,
-    groups_from_joints,
-    joint_groups,
     placement_cost,
-    set_fixed,
-    valid_masks,
-    wall_mask,
-    world_hulls,
 )
-from kinetix.level import ROLE_GREEN, ROLE_NONE, ROLE_RED, Level, SizeClass, size_class
 
 _BIG = 1e9
 MAX_MOVE = 0.5  # m, per axis

@@ -1,1 +1,1 @@
-"""The web application: editor, play loop and gallery served to the browser (planned)."""
+"""The web application: editor, play loop, agents, recordings and gallery served to the browser (docs/server.md)."""

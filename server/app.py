@@ -1,6 +1,6 @@
 """Startup: viser on an internal port of 127.0.0.1, the side server on the user's port, sessions, warm-up, Ctrl+C.
 
-Browsers reach everything through the user's port: the side server relays viser's websocket (server.http).
+Browsers reach everything through the user's port: the side server relays viser's websocket (server.web.http).
 
     app = App(Config(port=0)).start()     # port 0: any free port (tests)
     print(app.url)                        # the one URL to open
@@ -42,10 +42,10 @@ class Config:
     gallery: bool = True  # include the gallery router when server.gallery is installed
     level: str | None = None  # a level file every new tab opens with (default: the editor's new level)
     editor_factory: object = None  # tests may swap the editor model; default server.editor.Editor
-    record: bool = True  # record every play to MCAP (server.recorder); the tab's Recordings folder needs it
-    drafts: bool = True  # keep every tab's work as a draft in <data>/drafts (server.draft_tab): reloads lose nothing
-    recent_max_files: int | None = None  # cap on recordings/recent (None: server.recorder.RECENT_MAX_FILES)
-    recent_max_bytes: int | None = None  # its cap in bytes (None: server.recorder.RECENT_MAX_BYTES)
+    record: bool = True  # record every play to MCAP (server.recordings.recorder); the tab's Recordings folder needs it
+    drafts: bool = True  # keep every tab's work as a draft in <data>/drafts (server.drafts.tab): reloads lose nothing
+    recent_max_files: int | None = None  # cap on recordings/recent (None: server.recordings.recorder.RECENT_MAX_FILES)
+    recent_max_bytes: int | None = None  # its cap in bytes (None: server.recordings.recorder.RECENT_MAX_BYTES)
     agents: bool = True  # the Agent folder (Watch agent, Race, Train on this level) in every tab
     warm_agent: bool = True  # compile the general agent for warm_sizes in the background after start
     max_training_runs: int = 1  # training worker processes at once; more runs queue
@@ -54,7 +54,7 @@ class Config:
     train_steps: int = 100_000  # the default of a tab's "Training steps"
     train_options: dict = dataclasses.field(default_factory=dict)  # e.g. {"config": {"num_envs": 8}} (tests)
     train_worker: object = None  # the training worker function (tests swap in a cheap one); default train_worker
-    allowed_hosts: tuple[str, ...] = ()  # host names besides `host`, localhost and 127.0.0.1 (server.web_security)
+    allowed_hosts: tuple[str, ...] = ()  # host names besides `host`, localhost and 127.0.0.1 (server.web.security)
     write_limit: float | None = None  # gallery writes per minute per client; None: RateLimits' default, 0: off
     identity_limit: float | None = None  # new gallery identities per hour per client; None: default, 0: off
 
@@ -70,10 +70,11 @@ class App:
         self._thread: threading.Thread | None = None
         self._socket: socket.socket | None = None
         self.store = None  # the gallery Store, once started with the gallery on
-        self.recorder = None  # the PlayRecorder (server.recorder), once started
+        self.recorder = None  # the PlayRecorder (server.recordings.recorder), once started
         self.training = None  # the TrainingPool, with agents on
         self.agents = None  # the AgentLink, with agents on
         self.drafts = None  # the DraftStore, with drafts on
+        self.warmup = None  # the background compiles (server.play.warmup.WarmUp), once started
 
     @property
     def port(self) -> int:
@@ -89,11 +90,11 @@ class App:
         import uvicorn
         import viser
 
-        from server import play
-        from server.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
-        from server.memory import keep_frame_buffers_resident
-        from server.session import SessionManager
-        from server.web_security import allowed_hosts_for
+        from server.play.manager import SessionManager
+        from server.play.memory import keep_frame_buffers_resident
+        from server.play.warmup import WarmUp
+        from server.web.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
+        from server.web.security import allowed_hosts_for
 
         if self.config.max_sessions < 1:
             raise ValueError(f"--max-sessions must be at least 1, got {self.config.max_sessions}")
@@ -114,23 +115,12 @@ class App:
             raise RuntimeError(f"cannot listen on {self.config.host}:{self.config.port}: {error.strerror}") from None
         sock.listen(128)
         self._socket = sock
-        for size in self.config.warm_sizes:
-            t0 = time.perf_counter()
-            play.warm_up((size,))
-            log.info("compiled the play step for size %s in %.1f s", size, time.perf_counter() - t0)
-        # The malloc thresholds that keep frame buffers resident also keep XLA's compile-time memory: set them
-        # after the background compiles (measured peak RSS, sizes s/m/l, 8 tabs: 1433 MB before, 1209 MB after).
-        # The general agent is compiled after the batched steps, on the same chain (one compile at a time).
-        after_compiles = keep_frame_buffers_resident
-        if self.config.agents and self.config.warm_agent and self.config.warm_sizes:
-            from server.agent_play import warm_in_background
-
-            sizes = self.config.warm_sizes
-            after_compiles = lambda: warm_in_background(sizes, then=keep_frame_buffers_resident)  # noqa: E731
-        if self.config.warm_batches and self.config.warm_sizes:
-            play.warm_batches_in_background(self.config.warm_sizes, then=after_compiles)
-        else:
-            after_compiles()
+        # Every compile runs after the server answers (server.play.warmup): the play steps of warm_sizes first, then
+        # their batched steps, then the general agent, one at a time on one background thread.
+        agent = None
+        if self.config.agents and self.config.warm_agent:
+            from server.agents.play import warm_agent as agent
+        self.warmup = WarmUp(self.config.warm_sizes, batches=self.config.warm_batches, agent=agent)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
             # Loopback only, whatever --host says: the one port the user gave is the only one others can reach.
             self.viser = viser.ViserServer(host=VISER_HOST, port=0, verbose=False)
@@ -146,7 +136,7 @@ class App:
         self.viser.scene.configure_environment_map(hdri=None)
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
                                       editor_factory=self.config.editor_factory,
-                                      initial_level=self._initial_level())
+                                      initial_level=self._initial_level(), warmup=self.warmup)
         router = self._gallery_router()
         if self.recorder is None:
             self._start_recordings()
@@ -168,7 +158,15 @@ class App:
         if not self._uvicorn.started:
             self.stop()
             raise RuntimeError("the side server did not start")
+        # The malloc thresholds that keep frame buffers resident also keep XLA's compile-time memory: set them
+        # after the compiles (measured peak RSS, sizes s/m/l, 8 tabs: 1433 MB before, 1209 MB after).
+        self.warmup.start(then=keep_frame_buffers_resident)
         return self
+
+    def wait_until_warm(self, timeout: float | None = 600, everything: bool = False) -> bool:
+        """Block until the play steps of warm_sizes (with `everything`, also the batched steps and the agent) are
+        compiled; False on timeout. Tests and benchmarks that play at once call it; the server itself never waits."""
+        return self.warmup is None or self.warmup.wait(timeout, sizes_only=not everything)
 
     def _initial_level(self):
         if not self.config.level:
@@ -184,10 +182,13 @@ class App:
             return None
         from server.gallery.api import make_router
         from server.gallery.limits import RateLimits
-        from server.gallery.store import open_store
-        from server.gallery.tab import GalleryLink
+        from server.gallery.store import REPO_LEVELS, open_store
+        from server.play.gallery_tab import GalleryLink
 
-        self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir())
+        # A new gallery gets the project's levels after the server answers (a thumbnail each: ~13 s from an empty
+        # JAX cache), as the first warm-up task; a tab opened meanwhile shows the progress.
+        self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir(), seed_dir=None)
+        self.warmup.prepend("the gallery's levels", lambda: self.store.seed(REPO_LEVELS))
         self._start_recordings()
         link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
         link.attach(self.manager)
@@ -198,10 +199,11 @@ class App:
         return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits)
 
     def _start_recordings(self) -> None:
-        """Record every play (server.recorder) into the gallery's recordings folder, else <data>/recordings, and
-        give each tab its Recordings folder (server.replay); leftovers of a killed server are removed first."""
-        from server.recorder import PlayRecorder
-        from server.replay import RecordingPanel
+        """Record every play (server.recordings.recorder) into the gallery's recordings folder, else
+        <data>/recordings, and give each tab its Recordings folder (server.recordings.replay); leftovers of a killed
+        server are removed first."""
+        from server.recordings.recorder import PlayRecorder
+        from server.recordings.replay import RecordingPanel
 
         if self.store is not None and self.store.recordings_dir is not None:
             directory = self.store.recordings_dir
@@ -220,8 +222,8 @@ class App:
         """The Agent folder in every tab (after the gallery's hooks, so `?level=..&mode=agent` opens first)."""
         if not self.config.agents:
             return
-        from server.agent_tab import AgentLink
-        from server.training import TrainingPool, train_worker
+        from server.agents.tab import AgentLink
+        from server.agents.training import TrainingPool, train_worker
 
         self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker,
                                      max_queued=self.config.max_training_queue,
@@ -236,8 +238,8 @@ class App:
         """Drafts and the address bar (last, so `?draft=` is looked at before the gallery's and agents' links)."""
         if not self.config.drafts:
             return
-        from server.draft_tab import DraftLink
-        from server.drafts import DraftStore
+        from server.drafts.store import DraftStore
+        from server.drafts.tab import DraftLink
 
         self.drafts = DraftStore(Path(self.config.data or default_data_dir()) / "drafts")
         removed = self.drafts.clean_up()
@@ -246,8 +248,10 @@ class App:
         DraftLink(self.drafts).attach(self.manager)
 
     def stop(self) -> None:
-        from server import play
+        from server.play import steps
 
+        if self.warmup is not None:
+            self.warmup.cancel()  # a stop during the first start's compiles waits for one compile, not all of them
         if self.manager is not None:
             self.manager.close_all()
         if self.drafts is not None:
@@ -256,7 +260,7 @@ class App:
             self.recorder.close()  # finish recordings of plays cut short by the shutdown
         if self.training is not None:
             self.training.close()
-        if not play.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
+        if not steps.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
             log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
@@ -292,7 +296,6 @@ def serve(args) -> int:
                     identity_limit=getattr(args, "identity_limit", None),
                     recent_max_files=getattr(args, "recent_recordings", None),
                     recent_max_bytes=_megabytes(getattr(args, "recent_recordings_mb", None)))
-    print("Compiling the physics for play (once; cached for later runs)...", flush=True)
     try:
         app = App(config).start()
     except (RuntimeError, ValueError) as error:
@@ -301,6 +304,8 @@ def serve(args) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     print(f"Open {app.url}", flush=True)
+    print("Compiling the physics for play in the background (a first start takes longer; later starts use the "
+          "cache)...", flush=True)
     try:
         while not stop.wait(0.5):
             pass

@@ -1,5 +1,5 @@
 // Shows the server's frames on a 2D canvas over viser's WebGL canvas. Injected into viser's page by
-// server/http.py, before viser's own code runs.
+// server/web/http.py, before viser's own code runs.
 //
 // The server sends every frame as viser's BackgroundImageMessage (one JPEG per frame, in the same message batch
 // as the key acknowledgement). viser would load each through an <img> and a new WebGL texture, drop a frame

@@ -1,4 +1,4 @@
-// Key capture for the Kinetix playground, injected into viser's own page by server/http.py.
+// Key capture for the Kinetix playground, injected into viser's own page by server/web/http.py.
 // viser sends no key events to Python (and its hotkeys have no keyup), so this script listens for keydown and
 // keyup in the capture phase, drops auto-repeat, and sends each event over the /keys websocket, paired to the
 // tab's session by the nonce the session put in the page (<div id="kinetix-session" data-nonce=...>).

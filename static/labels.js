@@ -1,5 +1,5 @@
 // Ties viser's panel labels to their inputs, for screen readers and label clicks. Injected into viser's page by
-// server/http.py.
+// server/web/http.py.
 //
 // viser draws each labelled input as <label for="<uuid>"> beside the input, but its text, textarea and dropdown
 // components do not give the input that id (Mantine gives it one of its own), so the label names nothing: the save

@@ -17,7 +17,8 @@ import math
 
 import numpy as np
 
-from kinetix.formats import BodySpec, Fields, JointSpec, LevelSpec, ThrusterSpec, check_vector, describe
+from kinetix.formats import BodySpec, JointSpec, LevelSpec, ThrusterSpec, describe
+from kinetix.formats.fields import Fields, check_vector
 from kinetix.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,

@@ -11,7 +11,7 @@ directory holds a checkpoint, so a row never points at a half-written run.
 
 Only the level's author attaches (a decision of issue 26): `attach` needs the author token that owns the level
 (or `admin=True`, for server-side tools), checked in the same transaction as the insert. Everyone who opens the
-level sees its specialists, so anyone else's agent must not land there; it stays with its tab (server.agent_tab).
+level sees its specialists, so anyone else's agent must not land there; it stays with its tab (server.agents.tab).
 """
 
 from __future__ import annotations
@@ -22,7 +22,9 @@ from pathlib import Path
 
 from sqlalchemy import BigInteger, Column, Float, Integer, MetaData, String, Table, select
 
-from server.gallery.store import Forbidden, Invalid, NotFound, Store, Unauthorized, check_id, levels_t, now_ms
+from server.gallery.checks import Forbidden, Invalid, NotFound, Unauthorized, check_id
+from server.gallery.schema import levels_t, now_ms
+from server.gallery.store import Store
 
 CHECKPOINT_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 MAX_AGENT_NAME = 64

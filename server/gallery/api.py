@@ -7,10 +7,10 @@ anything is parsed; their schemas are still published in the OpenAPI description
 JSON `{"detail": "what is wrong"}` and stores nothing. Store calls block, so they run in the thread pool.
 
 Cross-site and abuse rules: a body must be `Content-Type: application/json` (415 otherwise), so a page on another
-site cannot send one with a "simple" form or text/plain request (server.web_security checks `Origin` too); writes
+site cannot send one with a "simple" form or text/plain request (server.web.security checks `Origin` too); writes
 and new identities are rate-limited per client (429 with Retry-After, server.gallery.limits); play statistics are
 not accepted from clients at all: the server records the plays it ran itself (`Store.record_play`, from
-server.gallery.tab). A browser's voter identity is a server-issued HttpOnly, SameSite=Strict cookie.
+server.play.gallery_tab). A browser's voter identity is a server-issued HttpOnly, SameSite=Strict cookie.
 """
 
 from __future__ import annotations
@@ -22,9 +22,10 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from server.gallery.checks import SIZES, SORTS, StoreError, Unauthorized, check_admin
 from server.gallery.limits import RateLimited, RateLimits
 from server.gallery.runs import BestRuns
-from server.gallery.store import SIZES, SORTS, Store, StoreError, Unauthorized, check_admin
+from server.gallery.store import Store
 
 MAX_BODY = 1_000_000  # bytes
 VOTER_COOKIE = "kinetix_voter"  # a voter token (an author token) issued by the server, HttpOnly

@@ -1,6 +1,6 @@
 """A standalone gallery app: the API under /api, the page at /gallery and static/ at /static.
 
-The side server (server/http.py) does the same with two lines:
+The side server (server/web/http.py) does the same with two lines:
 
     app.include_router(make_router(store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN")), prefix="/api")
     app.add_api_route("/gallery", gallery_page, include_in_schema=False)
@@ -22,7 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from server.gallery.api import make_router
 from server.gallery.limits import RateLimits
 from server.gallery.store import Store, open_store
-from server.web_security import LOCAL_HOSTS, WebSecurity, allowed_hosts_for
+from server.web.security import LOCAL_HOSTS, WebSecurity, allowed_hosts_for
 
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 
@@ -35,7 +35,7 @@ def gallery_page() -> FileResponse:
 
 def create_gallery_app(store: Store, admin_token: str | None = None, *, limits: RateLimits | None = None,
                        allowed_hosts: Iterable[str] = LOCAL_HOSTS) -> FastAPI:
-    """The gallery alone; requests must name one of `allowed_hosts` (server.web_security), writes and new
+    """The gallery alone; requests must name one of `allowed_hosts` (server.web.security), writes and new
     identities are rate-limited by `limits` (default RateLimits())."""
     app = FastAPI(title="Kinetix gallery", version="1")
     app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)

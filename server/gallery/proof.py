@@ -13,19 +13,20 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import jax
 import numpy as np
 
-from kinetix.level import LevelFile
-from kinetix.levels import load_level
-from kinetix.recording import RecordingError, read_recording, verify
+if TYPE_CHECKING:
+    from kinetix.level import LevelFile
 
 VERIFY_LOCK = threading.Lock()  # re-simulations queue up rather than share the CPU with the play threads
 SECONDS_TOLERANCE = 1e-6  # relative: the claim and the recording compute steps x frame skip x dt alike
 
 
 def _same_level(a: LevelFile, b: LevelFile) -> bool:
+    import jax
+
     if a.params != b.params:
         return False
     left, left_tree = jax.tree.flatten(a.level)
@@ -42,6 +43,11 @@ def _same_level(a: LevelFile, b: LevelFile) -> bool:
 def why_not_a_record(path: Path | None, *, level_id: str, player: str, steps: int, seconds: float,
                      level_document: dict) -> str | None:
     """None if the recording at `path` proves a solve of the gallery level in `steps` steps; else why not."""
+    # Imported here: JAX and the recording reader load in a second or two, which the server's start (it answers
+    # HTTP before compiling anything, server.play.warmup) should not wait for.
+    from kinetix.levels import load_level
+    from kinetix.recording import RecordingError, read_recording, verify
+
     if path is None:
         return "the play has no recording"
     try:

@@ -9,7 +9,7 @@ has at most one recording file in the gallery (`best-<level>-<random>.mcap` in `
 the `recording_path` of its play row. A new solve's recording is copied in only if it beats the kept one; then
 the superseded row's `recording_path` is cleared and its file deleted. Files no row names (a crash between the
 copy and the insert, a deleted level) are removed by `remove_orphans` at start-up. Every other play's file lives
-only in the server's recent/ folder (server.recorder), one per tab.
+only in the server's recent/ folder (server.recordings.recorder), one per tab.
 """
 
 from __future__ import annotations
@@ -23,8 +23,10 @@ from pathlib import Path
 
 from sqlalchemy import and_, select, update
 
+from server.gallery.checks import StoreError, check_id
 from server.gallery.proof import why_not_a_record
-from server.gallery.store import Store, StoreError, check_id, plays_t
+from server.gallery.schema import plays_t
+from server.gallery.store import Store
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +138,7 @@ class BestRuns:
     def candidate(self, recorder, session, result: str, steps: int, seconds: float,
                   player: str = "human") -> str | None:
         """For a finished play of a gallery level: the best-run file name to record with it, if this play is a
-        human solve that beats the kept best run and whose recording (server.recorder.PlayRecorder) proves it
+        human solve that beats the kept best run and whose recording (server.recordings.recorder.PlayRecorder) proves it
         (`offer`); else None. `player`:
         the recording's player ("human", or "race" for the human's side of a race, which is the session's play).
         Waits for the recording to be finished, so call it off the play thread (on_play_end runs on its own)."""

@@ -18,291 +18,62 @@ when any of them is raised.
 
 from __future__ import annotations
 
-import base64
-import dataclasses
-import hashlib
-import hmac
 import json
 import math
 import os
-import re
 import secrets
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import (
-    BigInteger,
-    Boolean,
-    Column,
     Connection,
-    Float,
-    Integer,
-    LargeBinary,
-    MetaData,
-    SmallInteger,
-    String,
-    Table,
-    Text,
     and_,
-    case,
     create_engine,
-    event,
     func,
     or_,
     select,
     text,
 )
-from sqlalchemy.engine import Engine, make_url
+from sqlalchemy.engine import make_url
 from sqlalchemy.exc import IntegrityError
 
-from server.gallery import migrations
+from server.gallery import migrations, queries
+from server.gallery.checks import (
+    KINDS,
+    MAX_NAME,
+    RECORDING_RE,
+    SIZES,
+    SORTS,
+    Forbidden,
+    Invalid,
+    NotFound,
+    SavedLevel,
+    Unauthorized,
+    check_description,
+    check_id,
+    check_name,
+    check_tags,
+    check_unicode,
+    prepare_level,
+)
+from server.gallery.schema import (
+    _sqlite_engine,
+    author_id_for,
+    authors_t,
+    default_data_dir,
+    levels_t,
+    meta_t,
+    now_ms,
+    plays_t,
+    resolve_db_url,
+    tags_t,
+    token_hash,
+    votes_t,
+)
 
 REPO_LEVELS = Path(__file__).resolve().parents[2] / "levels"
-SIZES = ("s", "m", "l", "xl")
-KINDS = ("human", "agent")
-SORTS = ("newest", "top", "played", "hardest")
-MAX_NAME = 100
-MAX_DESCRIPTION = 2000
-MAX_TAGS = 10
-TAG_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,31}$")
-THUMBNAIL_SIZE = 256
-ID_RE = re.compile(r"[A-Za-z0-9_-]{1,32}")
-RECORDING_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")  # a plain file name under recordings/
-
-
-class StoreError(Exception):
-    status = 400
-
-    def __init__(self, message: str):
-        super().__init__(message)
-        self.message = message
-
-
-class Invalid(StoreError):
-    status = 422
-
-
-class NotFound(StoreError):
-    status = 404
-
-
-class Unauthorized(StoreError):
-    status = 401
-
-
-class Forbidden(StoreError):
-    status = 403
-
-
-# The current schema, for building queries (created by the migrations, never by metadata.create_all).
-_meta = MetaData()
-meta_t = Table("meta", _meta, Column("key", String(64), primary_key=True), Column("value", Text))
-authors_t = Table("authors", _meta, Column("id", String(16), primary_key=True), Column("token_hash", String(64)),
-                  Column("created", BigInteger))
-levels_t = Table(
-    "levels", _meta, Column("id", String(32), primary_key=True), Column("name", String(100)),
-    Column("description", Text), Column("author_id", String(16)), Column("created", BigInteger),
-    Column("updated", BigInteger), Column("parent_id", String(32)), Column("size", String(8)),
-    Column("level_json", Text), Column("thumbnail", LargeBinary))
-tags_t = Table("level_tags", _meta, Column("level_id", String(32)), Column("tag", String(32)))
-votes_t = Table("votes", _meta, Column("level_id", String(32)), Column("author_id", String(16)),
-                Column("value", SmallInteger), Column("created", BigInteger))
-plays_t = Table("plays", _meta, Column("id", BigInteger, primary_key=True), Column("level_id", String(32)),
-                Column("kind", String(8)), Column("solved", Boolean), Column("steps", Integer),
-                Column("seconds", Float), Column("created", BigInteger), Column("recording", LargeBinary),
-                Column("recording_path", String(255)))
-
-
-def now_ms() -> int:
-    return int(time.time() * 1000)
-
-
-def token_hash(token: str) -> str:
-    return hashlib.sha256(("kinetix-token:" + token).encode()).hexdigest()
-
-
-def author_id_for(token: str) -> str:
-    """The public id shown for an author: derived from the token in another domain, so it reveals nothing."""
-    return hashlib.sha256(("kinetix-author:" + token).encode()).hexdigest()[:12]
-
-
-def default_data_dir() -> Path:
-    if os.environ.get("KINETIX_DATA"):
-        return Path(os.environ["KINETIX_DATA"])
-    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-    return Path(base) / "kinetix"
-
-
-def resolve_db_url(db: str | os.PathLike | None = None, data_dir: str | os.PathLike | None = None) -> str:
-    """The SQLAlchemy URL for --db / KINETIX_DB (a postgresql:// URL, a sqlite:/// URL or a file path)
-    or, when neither is given, <data dir>/gallery.sqlite3."""
-    db = db if db is not None else os.environ.get("KINETIX_DB") or None
-    if db is None:
-        folder = Path(data_dir) if data_dir is not None else default_data_dir()
-        folder.mkdir(parents=True, exist_ok=True)
-        return f"sqlite:///{(folder / 'gallery.sqlite3').resolve()}"
-    db = str(db)
-    for prefix in ("postgresql://", "postgres://"):
-        if db.startswith(prefix):
-            return "postgresql+psycopg://" + db[len(prefix):]
-    if db.startswith(("postgresql+", "sqlite:")):
-        return db
-    if "://" in db:
-        raise ValueError(f"unsupported database URL {db!r}: use postgresql://... or a SQLite file path")
-    Path(db).expanduser().resolve().parent.mkdir(parents=True, exist_ok=True)
-    return f"sqlite:///{Path(db).expanduser().resolve()}"
-
-
-def _sqlite_engine(url: str) -> Engine:
-    engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 60},
-                           pool_size=20, max_overflow=20)
-
-    @event.listens_for(engine, "connect")
-    def _on_connect(dbapi_conn, _record):
-        dbapi_conn.isolation_level = None  # we issue BEGIN ourselves (below), so BEGIN IMMEDIATE is possible
-        cursor = dbapi_conn.cursor()
-        cursor.execute("PRAGMA journal_mode=WAL")
-        # NORMAL in WAL mode survives a killed process (the WAL is replayed); only power loss can drop the
-        # last commits. FULL would fsync every commit.
-        cursor.execute("PRAGMA synchronous=NORMAL")
-        cursor.execute("PRAGMA foreign_keys=ON")
-        cursor.execute("PRAGMA busy_timeout=60000")
-        cursor.close()
-
-    @event.listens_for(engine, "begin")
-    def _on_begin(conn):
-        conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get("write") else "BEGIN")
-
-    return engine
-
-
-@dataclasses.dataclass
-class SavedLevel:
-    """What a save produces before it touches the database: validated fields and the rendered thumbnail."""
-
-    size: str
-    level_json: str
-    thumbnail: bytes
-
-
-def prepare_level(level: Any, name: str | None = None) -> SavedLevel:
-    """Validate a level document (either format, as a parsed dict) and render its thumbnail.
-
-    Raises Invalid with the loader's message; the gallery holds levels of size s, m or l only, the classes
-    the play server compiles for.
-    """
-    from kinetix.level import LevelError
-    from kinetix.levels import dumps, load_level
-    from kinetix.render import render_thumbnail_png
-
-    if not isinstance(level, dict):
-        raise Invalid(f"level: expected a JSON object in our format or the Kinetix format, got {_json_type(level)}")
-    check_document_text("level", level)
-    try:
-        file = load_level(level)
-    except LevelError as error:
-        raise Invalid(f"level: {error}") from None
-    except RecursionError:
-        raise Invalid("level: nested too deeply") from None
-    if file.size.name not in SIZES:
-        raise Invalid(f"level: size {file.size.name!r} is not a gallery size class; use s, m, l or xl")
-    if name is not None:
-        file = dataclasses.replace(file, name=name)
-    return SavedLevel(file.size.name, dumps(file, "ours"), render_thumbnail_png(file.level, THUMBNAIL_SIZE))
-
-
-def _json_type(value: Any) -> str:
-    return {dict: "object", list: "array", str: "string", bool: "boolean", int: "number", float: "number",
-            type(None): "null"}.get(type(value), type(value).__name__)
-
-
-def check_unicode(field: str, text: str) -> str:
-    """`text` unchanged if both databases can store it: no lone UTF-16 surrogates (JSON's "\\ud800" decodes to
-    one, and neither UTF-8 nor PostgreSQL can hold it) and no NUL (PostgreSQL text cannot hold it)."""
-    if "\x00" in text:
-        raise Invalid(f"{field}: must not contain NUL characters")
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError as error:
-        raise Invalid(f"{field}: contains a lone UTF-16 surrogate ({text[error.start]!r} at character "
-                      f"{error.start}); text must be valid Unicode") from None
-    return text
-
-
-def check_document_text(field: str, value: Any, depth: int = 0) -> None:
-    """Every string (keys too) of a parsed JSON document is valid Unicode; the error names the path."""
-    if depth > 64:
-        raise Invalid(f"{field}: nested too deeply")
-    if isinstance(value, str):
-        try:
-            value.encode("utf-8")
-        except UnicodeEncodeError:
-            raise Invalid(f"{field}: contains a lone UTF-16 surrogate; text must be valid Unicode") from None
-    elif isinstance(value, dict):
-        for key, item in value.items():
-            path = f"{field}.{str(key).encode('utf-8', 'replace').decode()}"  # printable even if the key is not
-            check_document_text(path, key, depth + 1)
-            check_document_text(path, item, depth + 1)
-    elif isinstance(value, list):
-        for i, item in enumerate(value):
-            check_document_text(f"{field}[{i}]", item, depth + 1)
-
-
-def check_name(name: Any) -> str:
-    if not isinstance(name, str):
-        raise Invalid(f"name: expected a string, got {_json_type(name)}")
-    if not name.strip():
-        raise Invalid("name: must not be empty")
-    if len(name) > MAX_NAME:
-        raise Invalid(f"name: {len(name)} characters, at most {MAX_NAME} allowed")
-    return check_unicode("name", name)
-
-
-def check_description(description: Any) -> str:
-    if not isinstance(description, str):
-        raise Invalid(f"description: expected a string, got {_json_type(description)}")
-    if len(description) > MAX_DESCRIPTION:
-        raise Invalid(f"description: {len(description)} characters, at most {MAX_DESCRIPTION} allowed")
-    return check_unicode("description", description)
-
-
-def check_tags(tags: Any) -> list[str]:
-    if not isinstance(tags, list):
-        raise Invalid(f"tags: expected a list of strings, got {_json_type(tags)}")
-    if len(tags) > MAX_TAGS:
-        raise Invalid(f"tags: {len(tags)} tags, at most {MAX_TAGS} allowed")
-    out: list[str] = []
-    for i, tag in enumerate(tags):
-        if not isinstance(tag, str) or not TAG_RE.match(tag.strip().lower()):
-            raise Invalid(f"tags[{i}]: {tag!r} is not a tag: 1-32 of a-z, 0-9, '-', '_', starting with a "
-                          "letter or digit")
-        if tag.strip().lower() not in out:
-            out.append(tag.strip().lower())
-    return out
-
-
-def check_id(level_id: Any) -> str:
-    if not isinstance(level_id, str) or not ID_RE.fullmatch(level_id):
-        raise NotFound(f"no level with id {str(level_id)[:40]!r}")
-    return level_id
-
-
-def _encode_cursor(key: int, level_id: str) -> str:
-    return base64.urlsafe_b64encode(json.dumps([key, level_id]).encode()).decode().rstrip("=")
-
-
-def _decode_cursor(cursor: str) -> tuple[int, str]:
-    try:
-        key, level_id = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
-        if (isinstance(key, int) and not isinstance(key, bool) and isinstance(level_id, str)
-                and ID_RE.fullmatch(level_id) and abs(key) < 2**62):
-            return key, level_id
-    except (ValueError, TypeError, UnicodeDecodeError):
-        pass
-    raise StoreError("cursor: not a cursor from a previous page's \"next\"")
 
 
 class Store:
@@ -507,81 +278,6 @@ class Store:
         return self.recordings_dir / row.recording_path
 
     # ---- reading ----
-    @staticmethod
-    def _stats_subqueries(level_id: str | None = None):
-        human = plays_t.c.kind == "human"
-        agent = plays_t.c.kind == "agent"
-        record = and_(human, plays_t.c.solved, plays_t.c.recording_path.is_not(None))
-        plays = (select(
-            plays_t.c.level_id,
-            func.count().label("plays"),
-            func.count().filter(human).label("human_plays"),
-            func.count().filter(and_(human, plays_t.c.solved)).label("human_solved"),
-            func.count().filter(agent).label("agent_plays"),
-            func.count().filter(and_(agent, plays_t.c.solved)).label("agent_solved"),
-            # Best times come only from records: human solves whose recording server.gallery.runs verified by
-            # replay and kept (recording_path set; it keeps the best one's only, the best time's play).
-            func.min(case((record, plays_t.c.seconds))).label("best_human_seconds"),
-            func.min(case((record, plays_t.c.steps))).label("best_human_steps"),
-            func.count().filter(record).label("best_runs"),
-        ).where(plays_t.c.level_id == level_id if level_id else True).group_by(plays_t.c.level_id).subquery("p"))
-        votes = (select(
-            votes_t.c.level_id,
-            func.count().filter(votes_t.c.value > 0).label("up"),
-            func.count().filter(votes_t.c.value < 0).label("down"),
-        ).where(votes_t.c.level_id == level_id if level_id else True).group_by(votes_t.c.level_id).subquery("v"))
-        return plays, votes
-
-    def _select(self, level_id: str | None = None):
-        # For one level the aggregates are filtered inside the subqueries: SQLite does not push the outer
-        # WHERE into a GROUP BY subquery, and would otherwise aggregate every play in the gallery.
-        p, v = self._stats_subqueries(level_id)
-        n = lambda col: func.coalesce(col, 0)
-        human_plays, human_solved = n(p.c.human_plays), n(p.c.human_solved)
-        keys = {
-            "newest": levels_t.c.created,
-            "top": n(v.c.up) - n(v.c.down),
-            "played": n(p.c.plays),
-            # Parts per million of human plays solved (an integer, so cursors compare exactly); unplayed last.
-            "hardest": case((human_plays == 0, 1_000_001), else_=human_solved * 1_000_000 / human_plays),
-        }
-        columns = [levels_t.c.id, levels_t.c.name, levels_t.c.description, levels_t.c.author_id,
-                   levels_t.c.created, levels_t.c.updated, levels_t.c.parent_id, levels_t.c.size,
-                   n(p.c.plays).label("plays"), human_plays.label("human_plays"), human_solved.label("human_solved"),
-                   n(p.c.agent_plays).label("agent_plays"), n(p.c.agent_solved).label("agent_solved"),
-                   p.c.best_human_seconds, p.c.best_human_steps, n(v.c.up).label("up"), n(v.c.down).label("down"),
-                   n(p.c.best_runs).label("best_runs")]
-        base = (select(*columns).select_from(levels_t.outerjoin(p, p.c.level_id == levels_t.c.id)
-                                             .outerjoin(v, v.c.level_id == levels_t.c.id)))
-        return base, keys
-
-    def _tags(self, conn: Connection, ids: list[str]) -> dict[str, list[str]]:
-        out: dict[str, list[str]] = {i: [] for i in ids}
-        if ids:
-            for row in conn.execute(select(tags_t.c.level_id, tags_t.c.tag).where(tags_t.c.level_id.in_(ids))
-                                    .order_by(tags_t.c.tag)):
-                out[row.level_id].append(row.tag)
-        return out
-
-    @staticmethod
-    def _summary(row, tags: list[str]) -> dict:
-        rate = lambda solved, plays: (solved / plays) if plays else None
-        return {
-            "id": row.id, "name": row.name, "description": row.description,
-            "author": row.author_id, "created": row.created, "updated": row.updated, "parent": row.parent_id,
-            "size": row.size, "tags": tags,
-            "stats": {
-                "plays": int(row.plays), "human_plays": int(row.human_plays), "human_solved": int(row.human_solved),
-                "human_solve_rate": rate(row.human_solved, row.human_plays),
-                "agent_plays": int(row.agent_plays), "agent_solved": int(row.agent_solved),
-                "agent_solve_rate": rate(row.agent_solved, row.agent_plays),
-                "best_human_seconds": row.best_human_seconds,
-                "best_human_steps": None if row.best_human_steps is None else int(row.best_human_steps),
-                "has_best_run": int(row.best_runs) > 0,
-                "votes_up": int(row.up), "votes_down": int(row.down), "score": int(row.up) - int(row.down),
-            },
-        }
-
     def list_levels(self, *, sort: str = "newest", size: str | None = None, tag: str | None = None,
                     q: str | None = None, author: str | None = None, limit: int = 24,
                     cursor: str | None = None) -> tuple[list[dict], str | None]:
@@ -595,7 +291,7 @@ class Store:
         for field, value in (("tag", tag), ("q", q), ("author", author)):
             if value is not None:  # NUL matched every name on SQLite (C strings end there) and fails on PostgreSQL
                 check_unicode(field, value)
-        query, keys = self._select()
+        query, keys = queries.listing()
         key = keys[sort]
         query = query.add_columns(key.label("sort_key"))
         ascending = sort == "hardest"
@@ -608,7 +304,7 @@ class Store:
         if author:
             query = query.where(levels_t.c.author_id == author)
         if cursor:
-            last_key, last_id = _decode_cursor(cursor)
+            last_key, last_id = queries.decode_cursor(cursor)
             if ascending:
                 query = query.where(or_(key > last_key, and_(key == last_key, levels_t.c.id > last_id)))
             else:
@@ -617,31 +313,31 @@ class Store:
         with self._read() as conn:
             rows = conn.execute(query.order_by(*order).limit(limit + 1)).all()
             page = rows[:limit]
-            tags = self._tags(conn, [r.id for r in page])
-        items = [self._summary(r, tags[r.id]) for r in page]
-        nxt = _encode_cursor(int(page[-1].sort_key), page[-1].id) if len(rows) > limit else None
+            tags = queries.tags_of(conn, [r.id for r in page])
+        items = [queries.summary(r, tags[r.id]) for r in page]
+        nxt = queries.encode_cursor(int(page[-1].sort_key), page[-1].id) if len(rows) > limit else None
         return items, nxt
 
     def get_level(self, level_id: str) -> dict:
         """Metadata, stats and the level document (our format) of one level."""
         check_id(level_id)
-        query, _ = self._select(level_id)
+        query, _ = queries.listing(level_id)
         with self._read() as conn:
             row = conn.execute(query.add_columns(levels_t.c.level_json).where(levels_t.c.id == level_id)).first()
             if row is None:
                 raise NotFound(f"no level with id {level_id!r}")
-            out = self._summary(row, self._tags(conn, [level_id])[level_id])
+            out = queries.summary(row, queries.tags_of(conn, [level_id])[level_id])
         out["level"] = json.loads(row.level_json)
         return out
 
     def stats(self, level_id: str) -> dict:
         check_id(level_id)
-        query, _ = self._select(level_id)
+        query, _ = queries.listing(level_id)
         with self._read() as conn:
             row = conn.execute(query.where(levels_t.c.id == level_id)).first()
         if row is None:
             raise NotFound(f"no level with id {level_id!r}")
-        return self._summary(row, [])["stats"]
+        return queries.summary(row, [])["stats"]
 
     def thumbnail(self, level_id: str) -> bytes:
         check_id(level_id)
@@ -710,7 +406,3 @@ def open_store(db: str | os.PathLike | None = None, *, data_dir: str | os.PathLi
     if not url.startswith("sqlite:"):
         recordings = (Path(data_dir) if data_dir is not None else default_data_dir()) / "recordings"
     return Store(url, seed_dir=seed_dir, recordings_dir=recordings)
-
-
-def check_admin(token: str | None, admin_token: str | None) -> bool:
-    return bool(token and admin_token and hmac.compare_digest(token.encode(), admin_token.encode()))

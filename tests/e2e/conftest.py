@@ -46,7 +46,7 @@ def browser():
 def wait_js(page, expression: str, timeout: float = 60.0) -> None:
     """Wait until `expression` is truthy in the page. Polls page.evaluate (the DevTools protocol, which the page's
     Content-Security-Policy does not govern): page.wait_for_function evaluates its predicate with eval inside
-    the page, which the server's policy (no 'unsafe-eval', server/web_security.py) rightly refuses."""
+    the page, which the server's policy (no 'unsafe-eval', server/web/security.py) rightly refuses."""
     import time
 
     deadline = time.monotonic() + timeout
@@ -73,7 +73,7 @@ class Tab:
         self.context = browser.new_context(viewport={"width": width, "height": height}, accept_downloads=True)
         self.page = self.context.new_page()
         self.requests: list[str] = []
-        self.csp_violations: list[str] = []  # server/web_security.py's policy must let the app run
+        self.csp_violations: list[str] = []  # server/web/security.py's policy must let the app run
         self.page.on("request", lambda request: self.requests.append(request.url))
         self.page.on("websocket", lambda ws: self.requests.append(ws.url))
         self.watch_csp(self.page)
@@ -85,7 +85,7 @@ class Tab:
 
     def xy(self, x: float, y: float) -> tuple[float, float]:
         """Page pixel of world point (x, y): the frame is letterboxed into the canvas (left of the docked panel)."""
-        from server.draw import View
+        from server.play.draw import View
 
         box = canvas_box(self.page)
         u, v = View(round(box["width"]), round(box["height"])).to_screen(x, y)

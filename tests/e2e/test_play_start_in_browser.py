@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from kinetix.recording import read_recording
-from server import draw
+from server.play import draw
 from tests.e2e.conftest import LEVELS, Tab, canvas_box, wait_js
 from tests.server.conftest import running_app, wait_until
 
@@ -115,7 +115,7 @@ def test_notices_leave_the_hud_and_key_legend_clear(browser, app):
 
 def test_the_best_run_is_the_play_that_set_the_best_time_a_race_win_included(browser, app):
     from kinetix.agents.policy import load_policy
-    from server.agent_play import observing_env
+    from server.agents.play import observing_env
 
     level_id = _car_right(app, "car right (best run)")
     tab = Tab(browser, app, 1280, 800)

@@ -23,6 +23,7 @@ def server(data, port: int = 0):
     app = App(Config(port=port, data=data, gallery=True, agents=False, warm_sizes=("m",), warm_batches=False,
                      warm_agent=False)).start()
     try:
+        assert app.wait_until_warm(timeout=600)
         yield app
     finally:
         app.stop()

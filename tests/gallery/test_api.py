@@ -131,7 +131,7 @@ def test_plays_and_stats(client, store):
     level_id = create(client)["id"]
     plays = [("human", True, 100, 3.5), ("human", True, 80, 2.5), ("human", False, 300, 9.0), ("agent", True, 50, 1),
              ("agent", False, 256, 4)]
-    for kind, solved, steps, seconds in plays:  # as the server's sessions record them (server.gallery.tab)
+    for kind, solved, steps, seconds in plays:  # as the server's sessions record them (server.play.gallery_tab)
         # Only the 3.5 s solve comes with a recording verified by replay (server.gallery.runs): a record.
         kept = f"best-{level_id}-a.mcap" if seconds == 3.5 else None
         assert isinstance(store.record_play(level_id, kind, solved=solved, steps=steps, seconds=seconds,
@@ -196,7 +196,7 @@ def test_unknown_ids_and_bad_inputs(client, store):
         response = client.request(method, path, json=body, headers=headers)
         assert response.status_code == 404, (method, path, response.text)
         assert "no level" in response.json()["detail"] or response.status_code == 404
-    from server.gallery.store import Invalid
+    from server.gallery.checks import Invalid
 
     for kwargs, message in [(dict(kind="robot", solved=True, steps=1, seconds=1), "kind"),
                             (dict(kind="human", solved=1, steps=1, seconds=1), "solved"),

@@ -14,7 +14,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from server.gallery.store import SavedLevel, Store, prepare_level
+from server.gallery.checks import SavedLevel, prepare_level
+from server.gallery.store import Store
 from tests.gallery.conftest import level_doc
 
 THREADS = 16
@@ -86,7 +87,8 @@ def test_sixteen_threads_lose_nothing(store: Store, db_url: str):
 
 WRITER = """
 import sys
-from server.gallery.store import SavedLevel, Store
+from server.gallery.checks import SavedLevel
+from server.gallery.store import Store
 store = Store(sys.argv[1], seed_dir=None)
 prepared = SavedLevel("m", sys.stdin.read(), b"png")
 token = None

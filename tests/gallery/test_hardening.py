@@ -41,7 +41,7 @@ def test_clients_cannot_post_plays(client, store):
     stats = client.get(f"/api/levels/{level_id}/stats").json()
     assert stats["plays"] == 0 and stats["best_human_seconds"] is None
     assert "/api/levels/{level_id}/plays" not in client.get("/openapi.json").json()["paths"]
-    # The server's sessions record plays through the library (server.gallery.tab.GalleryLink.record_play).
+    # The server's sessions record plays through the library (server.play.gallery_tab.GalleryLink.record_play).
     # A best time needs a recording verified by replay too (tests/gallery/test_best_runs.py).
     store.record_play(level_id, "human", solved=True, steps=120, seconds=4.0)
     stats = client.get(f"/api/levels/{level_id}/stats").json()
@@ -191,7 +191,7 @@ def test_serve_options_reach_the_server():
     import argparse
 
     from kinetix.cli import _serve_arguments
-    from server.web_security import allowed_hosts_for
+    from server.web.security import allowed_hosts_for
 
     parser = argparse.ArgumentParser()
     _serve_arguments(parser)
@@ -325,7 +325,7 @@ def test_host_header_must_name_this_server(client, host, status):
 
 
 def test_allowed_hosts_extend_the_defaults(store):
-    from server.web_security import allowed_hosts_for
+    from server.web.security import allowed_hosts_for
 
     with make_client(store, allowed_hosts=allowed_hosts_for("192.168.1.5", ["kinetix.lan"])) as client:
         for host in ("kinetix.lan:8080", "192.168.1.5", "localhost"):

@@ -10,7 +10,8 @@ from sqlalchemy import create_engine, text
 
 from server.gallery import migrations
 from server.gallery.agents import LevelAgents
-from server.gallery.store import Forbidden, Invalid, NotFound, Store, Unauthorized
+from server.gallery.checks import Forbidden, Invalid, NotFound, Unauthorized
+from server.gallery.store import Store
 from tests.gallery.conftest import level_doc
 
 

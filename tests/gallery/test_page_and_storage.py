@@ -115,7 +115,7 @@ def test_open_store_default_path_and_env(tmp_path, monkeypatch):
     monkeypatch.setenv("KINETIX_DB", str(tmp_path / "env.sqlite3"))
     open_store(seed_dir=None).close()
     assert (tmp_path / "env.sqlite3").exists()
-    assert re.match(r"postgresql\+psycopg://", __import__("server.gallery.store", fromlist=["x"]).resolve_db_url(
+    assert re.match(r"postgresql\+psycopg://", __import__("server.gallery.schema", fromlist=["x"]).resolve_db_url(
         "postgresql://u@h/db"))
 
 

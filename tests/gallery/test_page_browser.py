@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from server.gallery.store import SavedLevel, Store
+from server.gallery.checks import SavedLevel
+from server.gallery.store import Store
 from tests.gallery.conftest import level_doc
 from tests.gallery.test_concurrency import _free_port, _start_server
 

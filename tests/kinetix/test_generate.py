@@ -26,7 +26,7 @@ from kinetix.generate import (
     sample_level,
     sample_nontrivial_level,
 )
-from kinetix.generate import polygon_mass_properties as jnp_polygon_mass_properties
+from kinetix.geometry import polygon_mass_properties as jnp_polygon_mass_properties
 from kinetix.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,

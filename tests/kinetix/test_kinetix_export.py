@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from jax2d import scene
-from kinetix.formats import describe, index_keyed_list, kinetix_json
+from kinetix.formats import describe, kinetix_json
+from kinetix.formats.fields import index_keyed_list
 from kinetix.level import NUM_WALLS, SIZES, LevelError, LevelFile, empty_level, make_level
 from kinetix.levels import load_level, to_document
 from tests.kinetix.test_level_formats import assert_bitwise_equal

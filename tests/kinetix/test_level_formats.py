@@ -12,7 +12,8 @@ import pytest
 import jax2d
 from jax2d import scene
 from kinetix.bindings import expand_actions
-from kinetix.formats import index_keyed_list, ours
+from kinetix.formats import ours
+from kinetix.formats.fields import index_keyed_list
 from kinetix.level import (
     NUM_WALLS,
     ROLE_BLUE,

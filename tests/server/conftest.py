@@ -34,7 +34,7 @@ def session_of(app, client, timeout: float = 20.0):
 
 
 @contextlib.contextmanager
-def running_app(**config):
+def running_app(wait_warm: bool = True, **config):
     from server.app import App, Config
 
     # No background compiles of batched steps: tests that need them ask for them (test_play_batch.py).
@@ -45,6 +45,10 @@ def running_app(**config):
                             "data": Path(data), **config}))
         app.start()
         try:
+            # The server compiles after it answers (server.play.warmup); tests that play at once wait for the play
+            # steps, as a user would by the time they press a key. test_warm_start.py does not.
+            if wait_warm:
+                assert app.wait_until_warm(timeout=600), "the play steps did not compile"
             yield app
         finally:
             app.stop()

@@ -1,4 +1,4 @@
-"""A cheap stand-in for server.training.train_worker (runs in a spawned process): reports progress, waits until
+"""A cheap stand-in for server.agents.training.train_worker (runs in a spawned process): reports progress, waits until
 the test releases it (a file appears), then writes a checkpoint-shaped directory and reports done."""
 
 from __future__ import annotations

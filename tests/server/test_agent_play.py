@@ -19,9 +19,9 @@ from kinetix.agents.policy import Policy
 from kinetix.formats import ThrusterSpec, build
 from kinetix.levels import to_document
 from kinetix.recording import read_recording
-from server.agent_play import AgentRunner, _overlay_box, action_text
-from server.agent_tab import BEST, NEWEST, AgentLink
-from server.gallery.tab import GalleryLink
+from server.agents.play import AgentRunner, _overlay_box, action_text
+from server.agents.tab import BEST, NEWEST, AgentLink
+from server.play.gallery_tab import GalleryLink
 from tests.server.conftest import running_app, session_of, wait_until
 
 FAKE_TRAINING = {"release": "unset"}  # replaced per test (the fake worker waits for this file)
@@ -154,7 +154,7 @@ def test_race_human_wins_against_an_agent_that_misses_and_both_plays_are_recorde
 
 def test_race_agent_wins_when_the_human_fires_the_thruster(app, make_client):
     from kinetix.agents.policy import load_policy
-    from server.agent_play import observing_env
+    from server.agents.play import observing_env
 
     noop = load_policy("noop", observing_env(build(falling_win_spec()).size))
     race, level_id, client, _ = _race(app, make_client, agent_policy=noop, hold_thruster=True)
@@ -236,7 +236,7 @@ def test_watch_refuses_a_missing_specialist_with_a_message(app, make_client):
 
 @pytest.mark.slow
 def test_a_tiny_real_training_attaches_a_specialist_that_watch_agent_plays(app, make_client):
-    from server.training import TrainingPool
+    from server.agents.training import TrainingPool
 
     level_id, token = app.store.create_level("tiny training", to_document(build(falling_win_spec())))
     client = make_client(app)
@@ -264,7 +264,7 @@ def test_a_tiny_real_training_attaches_a_specialist_that_watch_agent_plays(app, 
 
 
 def test_warm_up_compiles_the_agent_function_for_each_size_class_once():
-    from server import agent_play
+    from server.agents import play as agent_play
 
     before = {k for k in agent_play._FNS if k[0] == ("noop", "multi_discrete")}
     agent_play.warm_in_background(("s",), spec="noop").join(timeout=300)

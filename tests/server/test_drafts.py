@@ -1,4 +1,4 @@
-"""Drafts on the server (server/drafts.py, server/draft_tab.py): the store, the document, and a tab reopening its
+"""Drafts on the server (server/drafts/store.py, server/drafts/tab.py): the store, the document, and a tab reopening its
 draft with the undo history, at the protocol level (the browser tests are in tests/e2e/test_reload_in_browser.py)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import time
 import pytest
 from viser_client import KeysSocket, ViserTestClient, session_nonce
 
-from server.drafts import DraftError, DraftStore, draft_document, read_draft, snapshot_json
+from server.drafts.store import DraftError, DraftStore, draft_document, read_draft, snapshot_json
 from server.editor import Editor
 from tests.server.conftest import running_app, wait_until
 
@@ -173,8 +173,8 @@ def test_a_tab_reopens_its_draft_with_undo_after_the_tab_goes(app):
         wait_until(lambda: _address(client).startswith("?draft="))
         draft_id = _address(client).split("=", 1)[1]
         session.editor.set_tool("circle")
-        session._edit_call("click", 1.0, 1.0)
-        session._edit_call("click", 3.0, 1.0)
+        session.edit_call("click", 1.0, 1.0)
+        session.edit_call("click", 3.0, 1.0)
         spec = session.editor.spec
     finally:
         keys.close()
@@ -200,7 +200,7 @@ def test_a_malformed_draft_is_reported_and_the_tab_goes_on_with_a_new_one(app):
         assert "Could not reopen the draft" in json.dumps(note)
         assert "not valid JSON" in json.dumps(note)
         wait_until(lambda: _address(client).startswith("?draft=") and "broken-draft1" not in _address(client))
-        session._edit_call("click", 2.0, 2.0)  # the tab still edits
+        session.edit_call("click", 2.0, 2.0)  # the tab still edits
         assert (app.drafts.directory / "broken-draft1.json").exists()  # left for a look, removed when old
     finally:
         keys.close()
@@ -213,7 +213,7 @@ def test_a_second_key_socket_of_the_same_tab_does_not_reopen_the_level(app):
     again = None
     try:
         wait_until(lambda: _address(client).startswith("?draft="))
-        session._edit_call("click", 2.0, 2.0)
+        session.edit_call("click", 2.0, 2.0)
         wait_until(lambda: app.drafts.flush() and (app.drafts.directory / f"{_address(client)[7:]}.json").exists())
         spec = session.editor.spec
         session.play()
@@ -234,7 +234,7 @@ def test_discard_this_draft_removes_the_file_and_starts_a_new_level(app):
         old = _address(client)[len("?draft="):]
         walls = len(session.editor.spec.bodies)
         session.editor.set_tool("circle")
-        session._edit_call("click", 2.0, 2.0)
+        session.edit_call("click", 2.0, 2.0)
         wait_until(lambda: app.drafts.flush() and (app.drafts.directory / f"{old}.json").exists())
         client.click_button("Discard this draft")
         wait_until(lambda: _address(client).startswith("?draft=") and old not in _address(client))

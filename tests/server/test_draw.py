@@ -7,7 +7,7 @@ import pytest
 from fake_editor import FakeOverlay, falling_win_spec
 
 from kinetix.formats import JointSpec, build
-from server.draw import ROLE, View, draw_frame, scene_of
+from server.play.draw import ROLE, View, draw_frame, scene_of
 
 
 def test_view_letterboxes_and_round_trips():
@@ -65,7 +65,7 @@ def test_hud_drawn_on_its_rows_matches_drawing_on_the_whole_frame(level, size):
     """Frames draw the HUD on a strip of rows only (for speed); the pixels must equal drawing on the whole frame."""
     from PIL import Image
 
-    from server.draw import _draw_text
+    from server.play.draw import _draw_text
 
     view = View(*size)
     hud = "PLAY  step 120  4.00 s  ArrowRight"
@@ -80,11 +80,11 @@ def test_hud_drawn_on_its_rows_matches_drawing_on_the_whole_frame(level, size):
 
 
 def test_cached_text_has_the_pixels_of_pillows_text():
-    """Text is pasted through cached coverage masks (server.draw._text); on any background and at fractional
+    """Text is pasted through cached coverage masks (server.play.draw._text); on any background and at fractional
     positions it must give exactly the pixels ImageDraw.text gives."""
     from PIL import Image, ImageDraw
 
-    from server.draw import _font, _text
+    from server.play.draw import _font, _text
 
     rng = np.random.default_rng(0)
     for i in range(120):

@@ -7,7 +7,7 @@ import time
 import pytest
 from viser_client import KeysSocket, session_nonce
 
-from server.draw import View
+from server.play.draw import View
 from tests.server.conftest import running_app
 
 

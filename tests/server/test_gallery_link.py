@@ -1,4 +1,5 @@
-"""The gallery inside an editor tab (server.gallery.tab): save, remix, open by link, play records, author tokens."""
+"""The gallery inside an editor tab (server.play.gallery_tab): save, remix, open by link, play records, author
+tokens."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from viser_client import KeysSocket
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from server.gallery.tab import GalleryLink
+from server.play.gallery_tab import GalleryLink
 from tests.server.conftest import running_app, session_of, wait_until
 
 

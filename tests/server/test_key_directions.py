@@ -1,8 +1,9 @@
 """One rule for the arrow keys on every level: Right turns a binding's wheel clockwise, so a car rolls right.
 
-The rule lives in the key -> action mapping (server.play.action_from_keys with kinetix.bindings.clockwise_values of
-the level), not in the level files: our levels hold their wheels as joint body a, the public Kinetix levels as body
-b, and the motor drives d(angle_b - angle_a)/dt, so the same key needs opposite binding values on the two.
+The rule lives in the key -> action mapping (server.play.steps.action_from_keys with
+kinetix.bindings.clockwise_values of the level), not in the level files: our levels hold their wheels as joint body
+a, the public Kinetix levels as body b, and the motor drives d(angle_b - angle_a)/dt, so the same key needs opposite
+binding values on the two.
 """
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ import pytest
 
 from kinetix.bindings import _joint_wheel_is_a, clockwise_values
 from kinetix.levels import load_level
-from server import draw
-from server.agent_play import overlay_rows
-from server.play import action_from_keys, stepper_for
+from server.agents.play import overlay_rows
+from server.play import draw
+from server.play.steps import action_from_keys, stepper_for
 
 LEVELS = Path(__file__).resolve().parents[2] / "levels"
 OUR_VEHICLES = ["car_right", "car_ramp", "car_jump", "hamster_ball", "unicycle"]

@@ -1,4 +1,4 @@
-"""Everything through the user's one port: viser's websocket relayed by the side server (server/http.py)."""
+"""Everything through the user's one port: viser's websocket relayed by the side server (server/web/http.py)."""
 
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def test_relay_keeps_viser_subprotocol(app):
 
 
 def test_a_cross_site_page_cannot_open_viser_through_the_relay(app):
-    # The side server's Host/Origin checks (server/web_security.py) now guard viser's websocket too.
+    # The side server's Host/Origin checks (server/web/security.py) now guard viser's websocket too.
     protocol = f"viser-v{viser.__version__}"
     with pytest.raises(websockets.InvalidStatus) as refused:
         websockets.sync.client.connect(f"ws://127.0.0.1:{app.port}/", subprotocols=[protocol], open_timeout=10,

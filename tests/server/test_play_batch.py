@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from kinetix.levels import load_level
-from server import play
-from server.scheduler import PlayScheduler
+from server.play import steps
+from server.play.scheduler import PlayScheduler
 from tests.server.conftest import LEVELS
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -22,15 +22,15 @@ def stepper_and_levels():
     # compile and makes every batch here padded (2 or 3 plays) or split (9 plays).
     files = [load_level(LEVELS / "car_right.json"), load_level(LEVELS / "thruster_maze.json")]
     assert files[0].size.name == files[1].size.name == "m"
-    stepper = play.stepper_for(files[0])
-    assert play.stepper_for(files[1]) is stepper
+    stepper = steps.stepper_for(files[0])
+    assert steps.stepper_for(files[1]) is stepper
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(play, "BATCH_BUCKETS", (4,))
-        patch.setattr(play, "MIN_BATCH", 2)
+        patch.setattr(steps, "BATCH_BUCKETS", (4,))
+        patch.setattr(steps, "MIN_BATCH", 2)
         stepper._compile_batched(4)  # what the background compile does, here in the foreground
         assert 4 in stepper._batched
         yield stepper, files
-    assert play.wait_for_compiles(timeout=120)
+    assert steps.wait_for_compiles(timeout=120)
 
 
 def _assert_close(a, b):
@@ -42,7 +42,7 @@ def test_a_batched_step_matches_single_steps_for_different_levels(stepper_and_le
     stepper, files = stepper_and_levels
     starts = [stepper.start(f) for f in files]
     states, params = [s for s, _ in starts], [p for _, p in starts]
-    actions = [play.action_from_keys({"ArrowRight"}), play.action_from_keys({"ArrowUp", "Digit1"})]
+    actions = [steps.action_from_keys({"ArrowRight"}), steps.action_from_keys({"ArrowUp", "Digit1"})]
     for _ in range(10):
         batched = stepper.step_many(states, actions, params)
         single = [stepper.step(s, a, p) for s, a, p in zip(states, actions, params, strict=True)]
@@ -59,11 +59,11 @@ def test_a_batched_step_matches_single_steps_for_different_levels(stepper_and_le
 def test_odd_and_oversized_batches_are_padded_and_split(stepper_and_levels, monkeypatch):
     stepper, files = stepper_and_levels
     state, params = stepper.start(files[0])
-    action = play.action_from_keys(set())
+    action = steps.action_from_keys(set())
     one = stepper.step(state, action, params)
     # 3 plays: one padded call; 9 plays: calls of 4, 4 and a single step. Same results for every play.
     calls = []
-    monkeypatch.setattr(stepper, "step", lambda *a: calls.append(1) or play.Stepper.step(stepper, *a))
+    monkeypatch.setattr(stepper, "step", lambda *a: calls.append(1) or steps.Stepper.step(stepper, *a))
     for n in (3, 9):
         results = stepper.step_many([state] * n, [action] * n, [params] * n)
         assert len(results) == n
@@ -80,8 +80,8 @@ class _FakeSession:
         self.stepper, self.state, self.params, self.left = stepper, state, params, ticks
         self.done = []
 
-    def _plan(self, now):
-        from server.session import StepPlan
+    def plan(self, now):
+        from server.play.scheduler import StepPlan
 
         if self.left == 0:
             return StepPlan("drop")
@@ -89,7 +89,7 @@ class _FakeSession:
         return StepPlan("step", next_tick=now, stepper=self.stepper, state=self.state, params=self.params,
                         action=np.zeros(6, np.int32))
 
-    def _finish_step(self, plan, state, result):
+    def finish_step(self, plan, state, result):
         self.done.append(result.timestep)
         self.state = state
 

@@ -13,9 +13,8 @@ from fake_editor import FakeEditor
 
 from kinetix.formats import BodySpec, describe
 from kinetix.level import LevelParams, empty_level
-from server import play
-from server.scheduler import PlayScheduler
-from server.session import StepPlan
+from server.play import steps
+from server.play.scheduler import PlayScheduler, StepPlan
 from tests.server.conftest import running_app, session_of, wait_until
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -53,7 +52,7 @@ def app():
 def poisoned_stepper(monkeypatch):
     """Stepper.step and step_many raise for a poisoned play (step_many for the whole batch, as a compiled batch
     would), and work as before for every other play."""
-    real_step, real_many = play.Stepper.step, play.Stepper.step_many
+    real_step, real_many = steps.Stepper.step, steps.Stepper.step_many
 
     def step(self, state, action, params):
         if _is_poisoned(params):
@@ -65,8 +64,8 @@ def poisoned_stepper(monkeypatch):
             raise OverflowError("Python int too large to convert to C int (injected, batch)")
         return real_many(self, states, actions, params)
 
-    monkeypatch.setattr(play.Stepper, "step", step)
-    monkeypatch.setattr(play.Stepper, "step_many", step_many)
+    monkeypatch.setattr(steps.Stepper, "step", step)
+    monkeypatch.setattr(steps.Stepper, "step_many", step_many)
 
 
 def _fps(client, session, seconds: float = MEASURE_S) -> float:
@@ -92,7 +91,7 @@ def test_a_failing_play_does_not_slow_the_other_tab(app, make_client, poisoned_s
     wait_until(lambda: len(healthy_client.frames()) >= 5)  # compiled and running
     baseline = _fps(healthy_client, healthy)
 
-    caplog.set_level(logging.WARNING, logger="server.scheduler")
+    caplog.set_level(logging.WARNING, logger="server.play.scheduler")
     bad.play()
     wait_until(lambda: bad.mode == "edit", timeout=10)  # ended at its first step
     # The failing tab is told, in its status line (the edit view's message) and in a notification.
@@ -113,7 +112,7 @@ def test_a_failing_play_does_not_slow_the_other_tab(app, make_client, poisoned_s
     # >= 25 fps, or on a CI machine too loaded to play at 30 fps even alone, no worse than 85% of its own rate.
     assert during >= min(MIN_FPS, 0.85 * baseline), (during, baseline)
 
-    failures = [r for r in caplog.records if r.name == "server.scheduler"]
+    failures = [r for r in caplog.records if r.name == "server.play.scheduler"]
     assert restarts >= 4 and len(failures) == 1, [r.getMessage() for r in failures]  # logged once, not per play
     assert failures[0].levelno == logging.ERROR and failures[0].exc_info is not None
     healthy.stop()
@@ -128,7 +127,7 @@ class _FakeSession:
         self.failed: list[str] = []
         self.go = threading.Event()  # _run shares one among its sessions and sets it once all are added
 
-    def _plan(self, now):
+    def plan(self, now):
         if not self.go.is_set():
             return StepPlan("wait", next_tick=now + 0.001)
         if self.left == 0 or self.failed:
@@ -137,7 +136,7 @@ class _FakeSession:
         return StepPlan("step", next_tick=now, stepper=self.stepper, state=self.state, params=self.params,
                         action=np.zeros(6, np.int32), play_id=1)
 
-    def _finish_step(self, plan, state, result):
+    def finish_step(self, plan, state, result):
         self.done.append(result.timestep)
         self.state = state
 
@@ -154,7 +153,7 @@ class _FakeStepper:
     def step(self, state, action, params):
         if params == "poison":
             raise ValueError("bad play")
-        return state + 1, play.StepResult(0.0, False, False, False, False, state + 1)
+        return state + 1, steps.StepResult(0.0, False, False, False, False, state + 1)
 
     def step_many(self, states, actions, params):
         self.batches.append(len(states))
@@ -182,24 +181,24 @@ def test_a_failing_batch_is_retried_play_by_play_and_only_the_culprit_ends(caplo
     stepper = _FakeStepper()
     good = [_FakeSession(stepper, 0, "ok", ticks=5) for _ in range(2)]
     bad = _FakeSession(stepper, 0, "poison", ticks=5)
-    caplog.set_level(logging.WARNING, logger="server.scheduler")
+    caplog.set_level(logging.WARNING, logger="server.play.scheduler")
     _run([good[0], bad, good[1]])
     assert [s.done for s in good] == [[1, 2, 3, 4, 5]] * 2  # every tick stepped, the failing one included
     assert bad.done == [] and bad.failed == ["ValueError: bad play"]
     assert stepper.batches[0] == 3  # the three were batched together before the culprit was found
-    records = [r for r in caplog.records if r.name == "server.scheduler"]
+    records = [r for r in caplog.records if r.name == "server.play.scheduler"]
     assert len(records) == 1 and "stepping" in records[0].getMessage()
 
 
 def test_errors_that_recur_are_logged_with_a_traceback_once(caplog):
     scheduler = PlayScheduler()
-    caplog.set_level(logging.WARNING, logger="server.scheduler")
+    caplog.set_level(logging.WARNING, logger="server.play.scheduler")
     for _ in range(50):
         try:
             raise RuntimeError("same bug")
         except RuntimeError as error:
             scheduler._log_once("play scheduler tick failed", error)
-    records = [r for r in caplog.records if r.name == "server.scheduler"]
+    records = [r for r in caplog.records if r.name == "server.play.scheduler"]
     assert len(records) == 1 and records[0].exc_info is not None
 
 
@@ -213,7 +212,7 @@ def test_a_session_whose_plan_raises_is_ended_and_the_others_go_on():
             return StepPlan("drop")
         raise KeyError("plan")
 
-    broken._plan = plan
+    broken.plan = plan
     _run([broken, good])
     assert good.done == [1, 2, 3] and broken.failed == ["KeyError: 'plan'"]
 
@@ -229,8 +228,8 @@ def test_a_play_whose_frame_cannot_be_drawn_ends_with_a_message(app, make_client
         return real_render(self)
 
     monkeypatch.setattr(type(session), "render", render)
-    caplog.set_level(logging.WARNING, logger="server.scheduler")
+    caplog.set_level(logging.WARNING, logger="server.play.scheduler")
     session.play()
     wait_until(lambda: session.mode == "edit", timeout=10)
     assert "ZeroDivisionError: cannot draw" in session._message
-    assert len([r for r in caplog.records if r.name == "server.scheduler"]) == 1
+    assert len([r for r in caplog.records if r.name == "server.play.scheduler"]) == 1

@@ -8,7 +8,7 @@ import pytest
 from jax2d import SolverConfig
 from kinetix.level import WALLS_SOLVER, empty_level, solver_for, walls_static
 from kinetix.levels import load_level
-from server import play
+from server.play import steps
 from tests.server.conftest import LEVELS
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -38,12 +38,12 @@ def test_solver_for_uses_the_walls_solver_only_when_slots_0_to_3_are_static() ->
 def test_a_level_without_walls_gets_its_own_stepper_and_its_body_in_slot_1_still_lands_on_the_floor() -> None:
     """With num_static=4 the pair (slot 0, slot 1) would never be checked and the triangle would fall through."""
     file = load_level(no_walls_document())
-    stepper = play.stepper_for(file)
+    stepper = steps.stepper_for(file)
     assert stepper.env.config.solver == SolverConfig()
     walls_file = load_level(LEVELS / "car_right.json")
-    assert play.stepper_for(walls_file).env.config.solver == WALLS_SOLVER
+    assert steps.stepper_for(walls_file).env.config.solver == WALLS_SOLVER
     state, params = stepper.start(file)
     for _ in range(90):  # 3 s at frame skip 2
-        state, _ = stepper.step(state, play.action_from_keys(set()), params)
+        state, _ = stepper.step(state, steps.action_from_keys(set()), params)
     y = float(np.asarray(state.level.sim.bodies.position)[1, 1])
     assert 1.0 < y < 1.5, f"the triangle should rest on the floor (top at y = 1.0), its centre is at y = {y:.3f}"

@@ -1,6 +1,7 @@
-"""Recordings in the browser (server.recorder, server.replay, server.gallery.runs) at the protocol level: every play
-is recorded and replays bitwise, Download recording sends a valid MCAP, replay mode pushes frames and scrubs, bad
-uploads get a clear message, a disconnect leaves a finished file or none, the gallery keeps the best human solve."""
+"""Recordings in the browser (server.recordings.recorder, server.recordings.replay, server.gallery.runs) at the
+protocol level: every play is recorded and replays bitwise, Download recording sends a valid MCAP, replay mode
+pushes frames and scrubs, bad uploads get a clear message, a disconnect leaves a finished file or none, the gallery
+keeps the best human solve."""
 
 from __future__ import annotations
 
@@ -19,8 +20,8 @@ from viser_client import KeysSocket
 from kinetix.formats import build
 from kinetix.levels import to_document
 from kinetix.recording import read_recording, recorded_level, verify
-from server.play import action_from_keys
-from server.session import Controller
+from server.play.session import Controller
+from server.play.steps import action_from_keys
 from tests.server.conftest import LEVELS, running_app, session_of, wait_until
 
 CAR = LEVELS / "car_ramp.json"
@@ -153,10 +154,10 @@ def test_an_agent_play_is_recorded_with_the_agent_as_player(app, make_client):
 def test_plays_stepped_together_in_a_batch_replay_bitwise(app, make_client):
     """With 3 tabs playing, the server steps them in one vmapped call (bitwise different from single steps):
     the recordings say so per step and re-simulate bitwise."""
-    from server import play
+    from server.play import steps
 
-    play.warm_batches_in_background(("m",))
-    assert play.wait_for_compiles(timeout=300)
+    steps.warm_batches_in_background(("m",))
+    assert steps.wait_for_compiles(timeout=300)
     sessions = [_session(app, make_client(app))[0] for _ in range(3)]
     for i, session in enumerate(sessions):
         agent = _Agent()
@@ -421,7 +422,7 @@ def test_start_up_removes_partial_leftovers(tmp_path):
     import fcntl
     import os
 
-    from server.recorder import PlayRecorder
+    from server.recordings.recorder import PlayRecorder
 
     recorder = PlayRecorder(tmp_path)
     orphan = tmp_path / "recent" / ".play-x.mcap.abc.part"  # its writer is gone: nobody holds its lock
@@ -459,7 +460,7 @@ def _fill_recent(recorder, sizes: list[int]) -> list:
 
 
 def test_recent_recordings_are_capped_by_count_oldest_first(tmp_path):
-    from server.recorder import RECENT_MAX_BYTES, RECENT_MAX_FILES, PlayRecorder
+    from server.recordings.recorder import RECENT_MAX_BYTES, RECENT_MAX_FILES, PlayRecorder
 
     assert RECENT_MAX_FILES >= 8 and RECENT_MAX_BYTES >= 1 << 20  # room for each tab of a default server
     recorder = PlayRecorder(tmp_path, max_files=5)
@@ -470,7 +471,7 @@ def test_recent_recordings_are_capped_by_count_oldest_first(tmp_path):
 
 
 def test_recent_recordings_are_capped_by_size_oldest_first(tmp_path):
-    from server.recorder import PlayRecorder
+    from server.recordings.recorder import PlayRecorder
 
     recorder = PlayRecorder(tmp_path, max_bytes=1000)
     paths = _fill_recent(recorder, [400, 300, 300, 300, 200])  # 1500 bytes: the two oldest must go

@@ -32,7 +32,7 @@ def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
         assert sum("http" in line for line in lines) == 1  # one URL only (viser's internal one is not shown)
         page = urllib.request.urlopen(url, timeout=10)
         assert "keys.js" in page.read().decode()
-        assert page.headers["X-Content-Type-Options"] == "nosniff"  # server/web_security.py
+        assert page.headers["X-Content-Type-Options"] == "nosniff"  # server/web/security.py
         # --allowed-hosts reached the server: its name is served, any other name is refused (DNS rebinding).
         assert urllib.request.urlopen(urllib.request.Request(url + "health", headers={"Host": "kinetix.test:1"}),
                                       timeout=10).status == 200

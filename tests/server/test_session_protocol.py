@@ -14,7 +14,7 @@ from fake_editor import FakeEditor, falling_win_spec
 from PIL import Image
 from viser_client import KeysSocket, session_nonce
 
-from server.session import Controller, PlayListener
+from server.play.session import Controller, PlayListener
 from tests.server.conftest import running_app
 
 EDITORS: list[FakeEditor] = []
@@ -173,7 +173,7 @@ def test_win_shows_the_result_with_play_again_and_edit(app, make_client):
 
 
 def test_a_waiting_play_shows_its_start_and_the_first_control_key_starts_and_acts(app, make_client):
-    from server.session import START_HINT
+    from server.play.session import START_HINT
 
     class FirstAction(PlayListener):
         actions: list = []

@@ -11,7 +11,7 @@ from fake_training import fake_train_worker
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from server.gallery.tab import GalleryLink
+from server.play.gallery_tab import GalleryLink
 from tests.server.conftest import running_app, session_of, wait_until
 
 FAKE_TRAINING = {"release": "unset"}  # replaced per test (the fake worker waits for this file)

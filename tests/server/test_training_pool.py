@@ -1,4 +1,4 @@
-"""server.training.TrainingPool with a cheap fake worker (spawned processes, no JAX): the cap queues runs, queue
+"""server.agents.training.TrainingPool with a cheap fake worker (spawned processes, no JAX): the cap queues runs, queue
 positions move up, cancel stops queued and running runs, a dying worker is reported, progress reaches the caller;
 per-client limits, the global queue cap and the round-robin order across clients (issue 26)."""
 
@@ -10,7 +10,7 @@ import time
 import pytest
 from fake_training import fake_train_worker
 
-from server.training import TrainingPool, TrainingRefused
+from server.agents.training import TrainingPool, TrainingRefused
 
 
 def _wait(predicate, timeout=60.0):
@@ -151,7 +151,7 @@ def test_bad_arguments_are_refused():
 
 
 def test_the_real_worker_reports_a_bad_level_as_a_clear_failure(tmp_path):
-    from server.training import train_worker
+    from server.agents.training import train_worker
 
     bad = tmp_path / "level.json"
     bad.write_text("{not json")

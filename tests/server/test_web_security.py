@@ -1,4 +1,4 @@
-"""The side server's web safety (server/web_security.py, issue 26 §5): security headers on the page, static files
+"""The side server's web safety (server/web/security.py, issue 26 §5): security headers on the page, static files
 and errors; the Host check (DNS rebinding) and the Origin check, also on the /keys websocket."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from server.http import create_app
-from server.web_security import allowed_hosts_for, origin_matches
+from server.web.http import create_app
+from server.web.security import allowed_hosts_for, origin_matches
 
 KEYS = "ws://127.0.0.1:8080/keys"
 

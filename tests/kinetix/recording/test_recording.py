@@ -398,7 +398,8 @@ def test_batched_steps_replay_bitwise_with_the_batched_program(tmp_path):
     config = EnvConfig(size=level.size, frame_skip=level.params.frame_skip)
     env = make_env(config, level)
     params = EnvParams.from_level_params(level.params)
-    many = jax2d.jit(jax.vmap(env.transition))  # as server.play.Stepper's batched step: 8 lanes, other plays in them
+    many = jax2d.jit(jax.vmap(env.transition))  # as server.play.steps.Stepper's batched step: 8 lanes,
+    # other plays in them
     state = env.initial_state(jax.random.PRNGKey(0), params)
     other = state
     stack = lambda *xs: jnp.stack(xs)  # noqa: E731

@@ -1,6 +1,6 @@
 """Agents playing in a tab: "Watch agent" (AgentController) and "Race the agent" (RaceController).
 
-Both are server.session Controllers: the session's play thread calls `act(state, params)` once per agent step
+Both are server.play.session Controllers: the session's play thread calls `act(state, params)` once per agent step
 (every 1/30 s at the default frame skip), so that call must be cheap. Per agent (network shape) and size class
 ONE jitted function computes the observation from the env state and runs the policy:
 
@@ -28,12 +28,12 @@ from collections.abc import Callable
 import numpy as np
 from PIL import Image, ImageDraw
 
-from server import draw
-from server.session import Controller, episode_end
+from server.play import draw
+from server.play.hooks import Controller, episode_end
 
 log = logging.getLogger(__name__)
 
-MOTOR_SYMBOL = {0: "0", 1: "+", 2: "-"}  # multi-discrete motor values (server.play: 1 drives at +1, 2 at -1)
+MOTOR_SYMBOL = {0: "0", 1: "+", 2: "-"}  # multi-discrete motor values (server.play.steps: 1 drives at +1, 2 at -1)
 
 _FNS: dict[tuple, Callable] = {}  # (policy signature, size, observation) -> jitted (params, key, step, state)
 _ENVS: dict[tuple, object] = {}  # (size, observation) -> a KinetixEnv used only to observe states
@@ -334,25 +334,33 @@ def _winner_banner(frame: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(image)
 
 
-def warm_in_background(sizes=("s", "m", "l"), spec: str = "general", then: Callable[[], None] | None = None):
-    """Compile the observe-and-act function of `spec` for these size classes on a background compile thread."""
+def warm_agent(sizes=("s", "m", "l"), spec: str = "general") -> None:
+    """Compile the observe-and-act function of `spec` for these size classes now (server.play.warmup runs it
+    after the play steps, on its background thread)."""
     from kinetix.level import LevelFile, LevelParams, empty_level, size_class
-    from server import play
+    from server.play import steps
+
+    for name in sizes:
+        try:
+            size = size_class(name)
+            runner = AgentRunner(spec, size)
+            stepper = steps.stepper_for(LevelFile(empty_level(size), LevelParams()))
+            state, _ = stepper.start(LevelFile(empty_level(size), LevelParams()))
+            t0 = time.perf_counter()
+            runner.act(state)
+            runner.act(state)
+            log.info("compiled agent %s for size %s in %.1f s", spec, name, time.perf_counter() - t0)
+        except Exception:  # e.g. no general agent in this checkout: watching it then reports the error
+            log.exception("could not compile agent %s for size %s", spec, name)
+
+
+def warm_in_background(sizes=("s", "m", "l"), spec: str = "general", then: Callable[[], None] | None = None):
+    """`warm_agent` on a background compile thread, then `then()` there."""
+    from server.play import steps
 
     def compile_all() -> None:
-        for name in sizes:
-            try:
-                size = size_class(name)
-                runner = AgentRunner(spec, size)
-                stepper = play.stepper_for(LevelFile(empty_level(size), LevelParams()))
-                state, _ = stepper.start(LevelFile(empty_level(size), LevelParams()))
-                t0 = time.perf_counter()
-                runner.act(state)
-                runner.act(state)
-                log.info("compiled agent %s for size %s in %.1f s", spec, name, time.perf_counter() - t0)
-            except Exception:  # e.g. no general agent in this checkout: watching it then reports the error
-                log.exception("could not compile agent %s for size %s", spec, name)
+        warm_agent(sizes, spec)
         if then is not None:
             then()
 
-    return play._start_compile(compile_all)
+    return steps._start_compile(compile_all)

@@ -8,10 +8,10 @@ whose ticks fall together step in one compiled batched call (play.Stepper.step_m
 
 Schedules sit on a shared grid of the play tick (dt x frame skip, 1/30 s by default) so that sessions started
 at different moments still come due together. A key press wakes the thread at once and steps that session
-straight away, as before (see Session._plan).
+straight away, as before (see Session.plan).
 
 Isolation: one session's failure never stops another. Everything done for one session (its plan, its step, its
-frame) runs under its own try; an exception ends that session's play with a visible message (Session.play_failed)
+frame) runs under its own try; an exception ends that session's play with a visible message (Playable.play_failed)
 and the others go on in the same tick. A batched step that raises is retried one play at a time, so only the
 play that fails is ended and the innocent ones keep their frame rate. A failed play ends, so its error is logged
 once; the same error again (same place, type and message) is logged without its traceback, at most once a minute.
@@ -19,13 +19,13 @@ once; the same error again (same place, type and message) is logged without its 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-if TYPE_CHECKING:
-    from server.session import Session
+import numpy as np
 
 log = logging.getLogger(__name__)
 
@@ -34,16 +34,51 @@ MAX_LOGGED_ERRORS = 1000  # distinct errors remembered by _log_once
 LOG_REPEAT_S = 60.0  # an error seen again is logged (as one line with a count) at most this often
 
 
+@dataclasses.dataclass
+class StepPlan:
+    """What the play scheduler should do for a session this tick (Playable.plan)."""
+
+    kind: str  # "step" | "frame" (push a frame acknowledging a key) | "wait" | "drop" (no longer playing)
+    next_tick: float | None = None  # when the session is next due (perf_counter seconds), if it plays
+    stepper: object = None
+    state: object = None
+    params: object = None
+    action: np.ndarray | None = None
+    play_id: int = 0
+    ack: bool = False
+
+
+class Playable(Protocol):
+    """What the scheduler needs of a playing session (server.play.session.Session offers it). The scheduler knows
+    only this, so it does not import the session (no import cycle) and tests can schedule stand-ins."""
+
+    def plan(self, now: float) -> StepPlan:
+        """What to do this tick: step (with the stepper, state, params and action), push a frame, wait or drop."""
+        ...
+
+    def finish_step(self, plan: StepPlan, state, result) -> None:
+        """Take the stepped state and result: record, draw and push the frame, end the episode if it ended."""
+        ...
+
+    def push_ack_frame(self) -> None:
+        """Push a frame acknowledging the keys pressed since the last one (a paused or waiting play)."""
+        ...
+
+    def play_failed(self, error: BaseException, play_id: int | None = None) -> None:
+        """End this play (if `play_id` is still the current one) and say why in the tab."""
+        ...
+
+
 class PlayScheduler:
     def __init__(self) -> None:
-        self._sessions: set[Session] = set()
+        self._sessions: set[Playable] = set()
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._logged: dict[tuple, tuple[float, int]] = {}  # error -> (last logged, repeats since) (see _log_once)
 
-    def add(self, session: Session) -> None:
+    def add(self, session: Playable) -> None:
         """Schedule this session (it has started playing); wakes the thread."""
         with self._lock:
             if self._stopping:
@@ -87,15 +122,15 @@ class PlayScheduler:
             if wait > 0:
                 self._wake.wait(timeout=wait)
 
-    def _tick(self, sessions: list[Session]) -> float | None:
+    def _tick(self, sessions: list[Playable]) -> float | None:
         """Step and draw the sessions that are due; the time of the earliest next tick, or None if none."""
         now = time.perf_counter()
         steps: dict[object, list] = {}  # stepper -> [(session, plan)]
-        frames: list[Session] = []
+        frames: list[Playable] = []
         next_due: float | None = None
         for session in sessions:
             try:
-                plan = session._plan(now)
+                plan = session.plan(now)
             except Exception as error:
                 self._fail(session, None, "planning its step", error)
                 continue
@@ -110,12 +145,12 @@ class PlayScheduler:
         for stepper, items in steps.items():
             for session, plan, stepped in self._step_group(stepper, items):
                 try:
-                    session._finish_step(plan, *stepped)
+                    session.finish_step(plan, *stepped)
                 except Exception as error:
                     self._fail(session, plan, "drawing its step", error)
         for session in frames:
             try:
-                session._push_ack_frame()
+                session.push_ack_frame()
             except Exception as error:
                 self._fail(session, None, "drawing its frame", error)
         return next_due
@@ -141,11 +176,11 @@ class PlayScheduler:
                 self._fail(session, plan, "stepping", error)
         return stepped
 
-    def _drop(self, session: Session) -> None:
+    def _drop(self, session: Playable) -> None:
         with self._lock:
             self._sessions.discard(session)
 
-    def _fail(self, session: Session, plan, doing: str, error: Exception) -> None:
+    def _fail(self, session: Playable, plan, doing: str, error: Exception) -> None:
         """End this session's play with a visible error (it then drops out of the schedule by itself)."""
         self._log_once(f"a play failed while {doing}", error)
         try:

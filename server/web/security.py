@@ -15,7 +15,7 @@
 
 The CSP fits viser's page: its loader is an inline script that decompresses the client with WebAssembly and adds it
 as an inline module, and the client uses blob: workers and data:/blob: images. Its websocket and /keys are on the
-page's own origin (the side server relays viser's websocket, server/http.py), so connect-src is 'self' (which
+page's own origin (the side server relays viser's websocket, server/web/http.py), so connect-src is 'self' (which
 covers ws:/wss: to the same host and port). tests/e2e checks the page still loads.
 """
 

@@ -1,7 +1,7 @@
 """Measure agents in the server: ms per agent step (observe + policy, jitted, one call per play step) at s/m/l,
 and the frame rate of a Watch agent tab (frames the session sent per second, and frames a headless client got).
 
-    python -m server.bench_agent [--agent general] [--sizes s,m,l] [--seconds 5]
+    python -m server.bench.agent [--agent general] [--sizes s,m,l] [--seconds 5]
 
 Prints numbers; nothing here passes or fails.
 """
@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-LEVELS = Path(__file__).resolve().parents[1] / "levels"
+LEVELS = Path(__file__).resolve().parents[2] / "levels"
 
 
 def level_of_size(name: str):
@@ -27,8 +27,8 @@ def level_of_size(name: str):
 
 
 def step_cost(agent: str, size_name: str, calls: int = 300) -> dict:
-    from server.agent_play import AgentRunner
-    from server.play import stepper_for
+    from server.agents.play import AgentRunner
+    from server.play.steps import stepper_for
 
     level_file = level_of_size(size_name)
     stepper = stepper_for(level_file)
@@ -50,12 +50,13 @@ def step_cost(agent: str, size_name: str, calls: int = 300) -> dict:
 
 def watch_fps(agent: str | None, size_name: str, seconds: float) -> dict:
     """Frames per second of a tab watching `agent` (None: a human play with no keys, for comparison)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "server"))
     from viser_client import ViserTestClient, session_nonce
 
     from server.app import App, Config
 
     app = App(Config(port=0, gallery=False, warm_sizes=(size_name,), warm_batches=False, warm_agent=False)).start()
+    app.wait_until_warm()
     try:
         client = ViserTestClient(app.viser.get_port(), 640, 480)
         nonce = session_nonce(client)

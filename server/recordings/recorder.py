@@ -42,7 +42,8 @@ import numpy as np
 
 from kinetix.recording import Recorder, RecordingError, remove_partial_files
 from kinetix.recording.schema import MAX_FRAME_HZ
-from server.session import PlayListener, Session
+from server.play.hooks import PlayListener
+from server.play.session import Session
 
 log = logging.getLogger(__name__)
 

@@ -259,23 +259,26 @@ def wait_for_compiles(timeout: float | None = None) -> bool:
         running[0].join(timeout=left)
 
 
-def warm_batches_in_background(sizes=("s", "m", "l"), frame_skip: int = 2, then=None) -> None:
-    """Compile the batched play steps for these size classes one after another on a background thread, so
-    several tabs playing at once are batched from the start without holding up the server's start; then call
-    `then()` (if given) on that thread."""
+def warm_batches(sizes=("s", "m", "l"), frame_skip: int = 2) -> None:
+    """Compile the batched play steps for these size classes now, one after another, so several tabs playing at
+    once are batched from the start (server.play.warmup runs this on its background thread)."""
     from kinetix.level import LevelFile, LevelParams, empty_level, size_class
 
-    steppers = [stepper_for(LevelFile(empty_level(size_class(name)), LevelParams(frame_skip=frame_skip)))
-                for name in sizes]
+    for name in sizes:
+        stepper = stepper_for(LevelFile(empty_level(size_class(name)), LevelParams(frame_skip=frame_skip)))
+        for bucket in BATCH_BUCKETS:
+            with stepper._lock:
+                if bucket in stepper._batched or bucket in stepper._compiling or bucket in stepper._failed:
+                    continue
+                stepper._compiling.add(bucket)
+            stepper._compile_batched(bucket)
+
+
+def warm_batches_in_background(sizes=("s", "m", "l"), frame_skip: int = 2, then=None) -> None:
+    """`warm_batches` on a background compile thread without holding up the caller; then `then()` there."""
 
     def compile_all() -> None:
-        for stepper in steppers:
-            for bucket in BATCH_BUCKETS:
-                with stepper._lock:
-                    if bucket in stepper._batched or bucket in stepper._compiling or bucket in stepper._failed:
-                        continue
-                    stepper._compiling.add(bucket)
-                stepper._compile_batched(bucket)
+        warm_batches(sizes, frame_skip)
         if then is not None:
             then()
 

@@ -6,7 +6,7 @@
 - **Replay last play** and **Replay a file (.mcap)** (an upload): open a `Replay`;
 - a status line for what went wrong (a bad upload: not MCAP, not ours, truncated, too large).
 
-A `Replay` puts the session in mode "replay" (no editing, no play) and draws, with server.draw, the scene of
+A `Replay` puts the session in mode "replay" (no editing, no play) and draws, with server.play.draw, the scene of
 kinetix.recording.recorded_level(recording, step): the recorded states, no re-simulation (and no JAX call per
 frame: Replay.scene_at sets the recorded positions and angles in numpy), so scrubbing to any step is immediate.
 Its timeline ("Replay" folder, at the top of the panel while a replay is open): Play/Pause, a "Replay step"
@@ -15,7 +15,7 @@ steps), as the HUD's "step k/N" does. ←/→ step back and forward (Shift: 10 s
 with the slider focused or not (keys reach the session through keys.js). Space, Esc, Play or Close replay leave
 it. A thread per replay advances the step at the recorded pace times the speed.
 
-`open_best_run(session, path, title)` is what `/?level=<id>&mode=replay` calls (server.gallery.tab).
+`open_best_run(session, path, title)` is what `/?level=<id>&mode=replay` calls (server.play.gallery_tab).
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ import time
 from pathlib import Path
 
 from kinetix.recording import Recording, RecordingError, read_recording, recorded_level
-from server import draw
-from server.session import PlayListener, Session
+from server.play import draw
+from server.play.hooks import PlayListener
+from server.play.session import Session
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,7 @@ class Replay:
             session.stop()  # ends a play, or an earlier replay
             session.mode = "replay"
             session.replay = self
-            session._set_buttons()
+            session.set_buttons()
         self._thread.start()
 
     def stop(self) -> None:
@@ -174,7 +175,7 @@ class Replay:
                 step, dirty, playing = math.floor(self.position), self._dirty, self.playing
                 self._dirty = False
             before = now
-            canvas = self.session._canvas() if self.session.client is not None else None
+            canvas = self.session.canvas() if self.session.client is not None else None
             if canvas != self._canvas:  # the tab was resized: redraw even while paused
                 self._canvas, dirty = canvas, True
             if dirty:
@@ -212,7 +213,7 @@ class Replay:
         banner = ""
         if step == self.last and self._result:
             banner = f"{RESULT_TEXT[self._result]}\n{(step + 1) * self.tick:.2f} s, {step + 1} steps"
-        frame = draw.draw_frame(self._scene, session._canvas(), hud=hud, banner=banner)
+        frame = draw.draw_frame(self._scene, session.canvas(), hud=hud, banner=banner)
         with self._send_lock:  # stop() waits for a send in progress, so no replay frame lands after the edit frame
             if self._stopping:
                 return
@@ -365,7 +366,7 @@ class RecordingPanel(PlayListener):
     """Adds the Recordings/Replay folders to every session (see the module docstring)."""
 
     def __init__(self, recorder):
-        self.recorder = recorder  # server.recorder.PlayRecorder
+        self.recorder = recorder  # server.recordings.recorder.PlayRecorder
         self.panels: dict[int, SessionPanel] = {}
 
     def session_opened(self, session: Session) -> None:

@@ -5,11 +5,11 @@
   `?draft=<id>` otherwise (a new level, or a gallery level edited since): the session puts it in a hidden
   `<div id="kinetix-address" data-query=...>` and static/keys.js shows it with history.replaceState;
 - every edit (every change of the editor's undo history) queues the tab's draft: the level, the undo and redo
-  stacks and the gallery level it came from (server.drafts writes it atomically on its own thread);
+  stacks and the gallery level it came from (server.drafts.store writes it atomically on its own thread);
 - the /keys hello carries the page's query, so a reload, a reopened link or a reconnect after a server restart
   with `?draft=<id>` reopens that draft, with its undo history;
 - saving to the gallery discards the draft (the address becomes `?level=<new id>`), so does the tab's "Discard this
-  draft" button (the tab starts a new level); old drafts expire (server.drafts.DRAFT_MAX_AGE_S, DRAFT_CAP).
+  draft" button (the tab starts a new level); old drafts expire (server.drafts.store.DRAFT_MAX_AGE_S, DRAFT_CAP).
 
 No "leave this page?" prompt: an edit reaches the server before the next frame and the server writes it
 whether or not the tab stays, and a "Save to gallery" runs to its end on the server even if the tab goes.
@@ -23,8 +23,8 @@ import logging
 import threading
 from urllib.parse import parse_qs, urlencode
 
-from server.drafts import DraftError, DraftStore, draft_document, snapshot_json, valid_id
-from server.session import PlayListener
+from server.drafts.store import DraftError, DraftStore, draft_document, snapshot_json, valid_id
+from server.play.hooks import PlayListener
 
 log = logging.getLogger(__name__)
 

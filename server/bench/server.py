@@ -1,6 +1,6 @@
 """`kinetix bench server`: what a player feels, measured against a real server in this process.
 
-- draw_ms: server.draw frame time at 512x512 (mean over a project level, static layer cached as in play);
+- draw_ms: server.play.draw frame time at 512x512 (mean over a project level, static layer cached as in play);
 - key-to-frame latency in headless Chromium (the apt chromium via playwright): from the keydown handler in the
   page to the moment the frame stepped with that key is drawn on the page's canvas (static/frames.js; the server
   puts the key's sequence number in a hidden element in the same batch as the frame), p50 and p90;
@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-LEVEL = Path(__file__).resolve().parents[1] / "levels" / "car_right.json"
+LEVEL = Path(__file__).resolve().parents[2] / "levels" / "car_right.json"
 
 
 def _print(name: str, value: float, unit: str, as_json: bool, **extra) -> None:
@@ -34,7 +34,7 @@ def _print(name: str, value: float, unit: str, as_json: bool, **extra) -> None:
 
 
 def _draw_ms(level_file) -> float:
-    from server.draw import View, draw_frame, scene_of
+    from server.play.draw import View, draw_frame, scene_of
 
     scene, view = scene_of(level_file.level), View(512, 512)
     for _ in range(5):
@@ -59,7 +59,7 @@ def _latency(app, chromium: str, samples: int) -> tuple[list[float], float]:
         browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--use-gl=swiftshader"])
         # The control panel (about 390 px) is docked beside the canvas: this leaves a canvas of about 640x480.
         # bypass_csp: wait_for_function evaluates its predicate with eval in the page, which the server's
-        # Content-Security-Policy refuses (server/web_security.py); the page and its frames are the same.
+        # Content-Security-Policy refuses (server/web/security.py); the page and its frames are the same.
         page = browser.new_page(viewport={"width": 1030, "height": 480}, bypass_csp=True)
         page.goto(app.url)
         page.wait_for_function("window.__kinetixKeys && window.__kinetixKeys.ready()", timeout=60_000)
@@ -94,7 +94,7 @@ def _wire_latency(app, samples: int) -> tuple[list[float], list[float]]:
     """ms from sending a key on /keys to the frame batch carrying its ack arriving at a protocol client: through the
     user's port (viser's websocket relayed by the side server, as browsers get it) and, for the relay's cost, straight
     to viser's internal port. The two tabs take turns (in alternating order), so the machine's load hits both alike."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "server"))
     from viser_client import KeysSocket, ViserTestClient, session_nonce
 
     tabs = []
@@ -141,10 +141,10 @@ def _fps(app, sessions: int, seconds: float) -> list[float]:
     """
     import subprocess
 
-    child = subprocess.Popen([sys.executable, "-c", "from server.bench import client_process; client_process()",
+    child = subprocess.Popen([sys.executable, "-c", "from server.bench.server import client_process; client_process()",
                               str(app.port), str(sessions), str(seconds)],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                             cwd=Path(__file__).resolve().parents[1])
+                             cwd=Path(__file__).resolve().parents[2])
     try:
         if child.stdout.readline().strip() != "connected":
             raise RuntimeError("the benchmark's client process did not connect")
@@ -170,7 +170,7 @@ def _fps(app, sessions: int, seconds: float) -> list[float]:
 def client_process() -> None:
     """Child of _fps: argv = the server's port (it relays viser's websocket), number of tabs, seconds; prints
     "connected", waits for "go", then the frames per second each tab received as a JSON list."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "server"))
     from viser_client import ViserTestClient  # the headless client of the protocol tests
 
     port, sessions, seconds = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
@@ -190,14 +190,14 @@ def client_process() -> None:
 
 def run(args: argparse.Namespace) -> int:
     from kinetix.levels import load_level
-    from server import play
     from server.app import App, Config
+    from server.play import steps
 
     level_file = load_level(LEVEL)
     # Started as `kinetix serve` starts (all size classes warm, batched steps compiled in the background, then the
     # malloc thresholds for frame buffers), so draw time and peak RSS are the server's.
     app = App(Config(port=0, max_sessions=args.sessions + 2, level=str(LEVEL), gallery=False)).start()
-    play.wait_for_compiles()  # measure after the background compiles
+    steps.wait_for_compiles()  # measure after the background compiles
     try:
         _print("draw_ms_512", _draw_ms(level_file), "ms", args.json)
         if Path(args.chromium).exists():

@@ -9,7 +9,7 @@
   pauses and a slow machine do not change a player's time), as kind "agent" when an agent played it; with the
   server's PlayRecorder, a human solve that beats the level's best and whose recording verifies by replay sets
   the best time and keeps its recording (server.gallery.runs; without one it sets no best time);
-- `/?level=<id>&mode=replay` replays the level's best run (server.replay).
+- `/?level=<id>&mode=replay` replays the level's best run (server.recordings.replay).
 
 A save made while editing a gallery level is a remix: it keeps that level as its parent. The author token comes
 from the browser's localStorage (sent with the /keys hello); a save that issues a new token hands it back to the
@@ -23,8 +23,9 @@ import json
 import logging
 from urllib.parse import parse_qs
 
+from server.gallery.checks import StoreError, Unauthorized
 from server.gallery.runs import BestRuns
-from server.gallery.store import Store, StoreError, Unauthorized
+from server.gallery.store import Store
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +148,7 @@ class GalleryLink:
 
     def replay_best_run(self, session, level_id: str) -> bool:
         """Replay the level's best run in the tab (`?level=<id>&mode=replay`); a notification if it has none."""
-        from server.replay import open_best_run
+        from server.recordings.replay import open_best_run
 
         path = self.runs.best_run_file(level_id) if self.runs is not None else None
         if path is None:

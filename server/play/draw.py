@@ -31,7 +31,7 @@ MOTOR_COLOURS = [(255, 200, 0), (230, 0, 230), (0, 200, 210), (255, 120, 0)]  # 
 THRUSTER_COLOURS = [(255, 69, 0), (148, 0, 211)]  # thruster bindings 0-1
 JOINT_OFF = (255, 255, 255)
 WELD = (100, 100, 100)
-# The keys of motor binding i: (turns its wheel clockwise, anticlockwise) as server.play maps them. Arrow keys are
+# The keys of motor binding i: (turns its wheel clockwise, anticlockwise) as server.play.steps maps them. Arrow keys are
 # drawn as small arrows (Pillow's bundled font has no arrow glyphs); the characters name them in legend_text.
 MOTOR_KEYS = [("→", "←"), ("↓", "↑"), ("S", "W"), ("D", "A")]
 THRUSTER_KEYS = ["1", "2"]
@@ -104,7 +104,7 @@ def scene_of(level, static_from: Scene | None = None, pose: tuple | None = None)
 
     `static_from`: a Scene of the same play. Only positions and angles change while a level plays, so just those
     two arrays are fetched and the rest is shared (one transfer instead of 19 per frame). `pose`: those two as
-    host arrays already (server.play.Motion fetched them with the step), so nothing is transferred.
+    host arrays already (server.play.steps.Motion fetched them with the step), so nothing is transferred.
     """
     import jax
 

@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 
 _M_TRIM_THRESHOLD = -1  # mallopt parameter numbers from glibc's malloc.h
 _M_MMAP_THRESHOLD = -3
-# The largest frame buffer is the 2x drawing patch of the largest canvas (session.MAX_PIXELS = 1280x800):
+# The largest frame buffer is the 2x drawing patch of the largest canvas (frames.MAX_PIXELS = 1280x800):
 # 2560x1600x3 ≈ 12 MB, so it stays below the mmap threshold.
 MMAP_THRESHOLD_BYTES = 32 << 20
 TRIM_THRESHOLD_BYTES = 64 << 20

@@ -1,6 +1,6 @@
 """What recording every play costs the live server: one tab playing car_ramp at 30 fps, with and without recording.
 
-    python -m server.bench_recording [--seconds 10] [--json]
+    python -m server.bench.recording [--seconds 10] [--json]
 
 Prints, per frame: the time inside the recorder's hooks on the play thread (play_stepped) and on the encoder
 thread (frame_pushed), the recorder's writer-thread CPU, the process CPU with and without recording, the frame
@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-LEVEL = Path(__file__).resolve().parents[1] / "levels" / "car_ramp.json"
+LEVEL = Path(__file__).resolve().parents[2] / "levels" / "car_ramp.json"
 
 
 def _timed(recorder, name: str, samples: list[float]):
@@ -34,7 +34,7 @@ def _timed(recorder, name: str, samples: list[float]):
 
 
 def _run(record: bool, seconds: float) -> dict:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "server"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "server"))
     from viser_client import KeysSocket, ViserTestClient, session_nonce
 
     from server.app import App, Config
@@ -43,6 +43,7 @@ def _run(record: bool, seconds: float) -> dict:
     with tempfile.TemporaryDirectory() as data:
         app = App(Config(port=0, gallery=False, warm_sizes=("m",), warm_batches=False, level=str(LEVEL),
                          data=Path(data), record=record)).start()
+        app.wait_until_warm()
         stepped, pushed, started = [], [], []
         _timed(app.recorder, "play_stepped", stepped)
         _timed(app.recorder, "frame_pushed", pushed)

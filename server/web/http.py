@@ -28,11 +28,11 @@ from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, PlainTextResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.web_security import LOCAL_HOSTS, WebSecurity
+from server.web.security import LOCAL_HOSTS, WebSecurity
 
 log = logging.getLogger(__name__)
 
-STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
+STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 KEY_FIELDS = ("ctrl", "shift", "alt", "meta")
 MAX_KEY_MESSAGE = 1024  # bytes; anything longer is not a key event
 # The largest message a browser may send on any websocket of the side server (uvicorn's ws_max_size): viser's
@@ -62,8 +62,8 @@ def inject(page: str) -> str:
 
 def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                gallery_router: APIRouter | None = None, allowed_hosts=LOCAL_HOSTS) -> FastAPI:
-    """The side server's app. `manager` is a server.session.SessionManager (it maps nonces to sessions).
-    Requests must name one of `allowed_hosts` (server.web_security: Host/Origin checks, security headers)."""
+    """The side server's app. `manager` is a server.play.session.SessionManager (it maps nonces to sessions).
+    Requests must name one of `allowed_hosts` (server.web.security: Host/Origin checks, security headers)."""
     app = FastAPI(title="Kinetix playground", docs_url="/docs", openapi_url="/openapi.json")
     app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)  # also guards the relay of viser's websocket
     page = inject(viser_index_html())

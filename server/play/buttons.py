@@ -1,0 +1,33 @@
+"""The tab's Play folder: Play / Start / Stop (Space), Pause / Resume, Step, Play again and Edit, whose labels and
+states follow the session's mode."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: the session imports this module
+    from server.play.session import Session
+
+
+class PlayButtons:
+    def __init__(self, gui, session: Session):
+        with gui.add_folder("Play"):
+            self.play = gui.add_button("Play (Space)", icon=None)
+            self.pause = gui.add_button("Pause", disabled=True)
+            self.step = gui.add_button("Step", disabled=True)
+            self.again = gui.add_button("Play again", visible=False)
+            self.edit = gui.add_button("Edit", visible=False)
+        self.play.on_click(lambda _: session.toggle_play())
+        self.pause.on_click(lambda _: session.toggle_pause())
+        self.step.on_click(lambda _: session.single_step())
+        self.again.on_click(lambda _: session.play_again())
+        self.edit.on_click(lambda _: session.stop())
+
+    def update(self, mode: str) -> None:
+        """Labels and states for this mode ("edit" | "ready" | "play" | "paused" | "ended" | "replay")."""
+        self.play.label = "Play (Space)" if mode == "edit" else "Start (Space)" if mode == "ready" else "Stop (Space)"
+        self.pause.disabled = mode not in ("play", "paused")
+        self.pause.label = "Resume" if mode == "paused" else "Pause"
+        self.step.disabled = mode not in ("play", "paused", "ready")
+        self.again.visible = mode == "ended"
+        self.edit.visible = mode in ("ended", "ready")

@@ -146,7 +146,7 @@ def test_copy_paste_keeps_internal_joints_and_offsets(ed):
     assert ed.spec.bodies[7].position[0] == pytest.approx(ed.spec.bodies[4].position[0] + 0.25)
     assert set(ed.selection) >= {("body", 7), ("body", 8), ("joint", 1)}
     message = ed.paste()
-    assert message == "no thruster left: 2 of 2 used in size l"
+    assert message == 'no thruster left: 2 of 2 used in size l; "Move to size xl" in the panel makes room'
 
 
 def test_duplicate_single_body(ed):

@@ -23,7 +23,7 @@ from pathlib import Path
 from sqlalchemy import BigInteger, Column, Float, Integer, MetaData, String, Table, select
 
 from server.gallery.checks import Forbidden, Invalid, NotFound, Unauthorized, check_id
-from server.gallery.schema import levels_t, now_ms
+from server.gallery.schema import now_ms
 from server.gallery.store import Store
 
 CHECKPOINT_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
@@ -76,20 +76,17 @@ class LevelAgents:
         return True
 
     def _check_author(self, conn, level_id: str, token: str | None, admin: bool) -> None:
-        row = conn.execute(select(levels_t.c.author_id).where(levels_t.c.id == level_id)).first()
-        if row is None:
-            raise NotFound(f"no level {level_id!r} in the gallery")
-        if admin:
-            return
-        if not token:
-            raise Unauthorized("only the level's author can attach an agent to it: this needs the author's token")
+        """The store's owner check (Store._check_owner), with messages that say what attaching needs."""
         try:
-            author = self.store._author(conn, token)
+            self.store._check_owner(conn, level_id, token, admin)
+        except NotFound:
+            raise NotFound(f"no level {level_id!r} in the gallery") from None
         except Unauthorized:
-            raise Unauthorized("only the level's author can attach an agent to it: unknown author token") from None
-        if row.author_id is None or author != row.author_id:
+            why = "unknown author token" if token else "this needs the author's token"
+            raise Unauthorized(f"only the level's author can attach an agent to it: {why}") from None
+        except Forbidden:
             raise Forbidden(f"only the level's author can attach an agent to level {level_id!r}; this token does "
-                            "not own it (save your own copy of the level to keep your agent with it)")
+                            "not own it (save your own copy of the level to keep your agent with it)") from None
 
     def list(self, level_id: str) -> list[dict]:
         """The specialists of a level, newest first (rows whose checkpoint is gone are left out)."""

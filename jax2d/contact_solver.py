@@ -42,6 +42,7 @@ class ContactConstraints(NamedTuple):
     tangent_mass: jax.Array  # (S, 2)
     relative_velocity: jax.Array  # (S, 2) normal velocity before solving, for restitution
     impact_boost: jax.Array  # (S, 2) approach speed gained under gravity before impact (<= 0), for restitution
+    normal_gravity: jax.Array  # (S,) gravity's relative normal acceleration g_n (normal_gravity), for restitution
 
 
 class ContactImpulses(NamedTuple):
@@ -51,9 +52,10 @@ class ContactImpulses(NamedTuple):
 
 
 def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_mass, inv_inertia,
-            friction, restitution, gravity) -> ContactConstraints:
+            friction, restitution, gravity, h) -> ContactConstraints:
     """Build constraints from the step's manifolds (one row per slot), on batch-last arrays:
-    per body (M, *batch), manifold fields with the batch after their own axes; gravity (2, *batch)."""
+    per body (M, *batch), manifold fields with the batch after their own axes; gravity (2, *batch);
+    h: the substep."""
     a, b = layout.slot_a, layout.slot_b
     nx, ny = manifold.normal[:, 0], manifold.normal[:, 1]
     px, py = manifold.point[:, :, 0], manifold.point[:, :, 1]
@@ -71,6 +73,7 @@ def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_ma
     dvx, dvy = _relative_velocity(vel.x[a][:, None], vel.y[a][:, None], vel.w[a][:, None],
                                   vel.x[b][:, None], vel.y[b][:, None], vel.w[b][:, None], rax, ray, rbx, rby)
     rel = dvx * n_x + dvy * n_y
+    acc = normal_gravity(nx, ny, ma, mb, gravity)
     return ContactConstraints(
         nx=nx, ny=ny,
         friction=jnp.sqrt(friction[a] * friction[b]),
@@ -81,21 +84,30 @@ def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_ma
         normal_mass=effective_mass(n_x, n_y),
         tangent_mass=effective_mass(n_y, -n_x),
         relative_velocity=rel,
-        impact_boost=_impact_boost(rel, manifold.separation, n_x, n_y, inv_mass[a] > 0, inv_mass[b] > 0, gravity),
+        impact_boost=_impact_boost(rel, manifold.separation, acc[:, None], h),
+        normal_gravity=acc,
     )
 
 
-def _impact_boost(rel, separation, nx, ny, moving_a, moving_b, gravity):
-    """How much faster a point that is still apart at the step's start approaches when it hits: with the
-    relative normal acceleration g_n from gravity, the approach speed at impact is sqrt(rel^2 - 2 g_n s)
-    (free flight over the gap s). Restitution bounces at e times this speed, not e times the speed at the
-    step's start, which left a ball dropped on the floor 1-2 % low per bounce, and 15 % low on small bounces
-    at dt = 1/60 (the step-start speed misses g t of the fall)."""
-    g = lambda moving: moving.astype(jnp.float32)[:, None]  # noqa: E731
-    acc = (g(moving_b) - g(moving_a)) * (gravity[0] * nx + gravity[1] * ny)
+def normal_gravity(nx, ny, ma, mb, gravity):
+    """(S, *batch) gravity's relative normal acceleration of a contact's b side against its a side (a static
+    side does not fall). nx, ny, ma, mb (inverse masses): (S, *batch); gravity: (2, *batch)."""
+    falls = lambda m: (m > 0.0).astype(jnp.float32)  # noqa: E731
+    return (falls(mb) - falls(ma)) * (gravity[0] * nx + gravity[1] * ny)
+
+
+def _impact_boost(rel, separation, acc, h):
+    """How much faster a point approaches when it hits than its stored normal velocity rel says: with the
+    relative normal acceleration acc from gravity, the approach speed at impact is sqrt(v^2 - 2 acc s) (free
+    flight over the gap s), where v = rel + acc h / 2 is the approach velocity at the step's start: the
+    substeps integrate velocity before position (symplectic Euler), so a stored velocity is the mean over the
+    last substep, half a substep behind. Restitution bounces at e times this speed, not e times rel, which
+    left a ball dropped on the floor 1-2 % low per bounce, and 15 % low on small bounces at dt = 1/60 (the
+    step-start speed misses g t of the fall)."""
+    v = rel + acc * (0.5 * h)
     gap = jnp.maximum(separation, 0.0)
-    impact = -jnp.sqrt(jnp.maximum(rel * rel - 2.0 * acc * gap, 0.0))
-    return jnp.where((rel < 0.0) & (acc < 0.0), impact - rel, 0.0)
+    impact = -jnp.sqrt(jnp.maximum(v * v - 2.0 * acc * gap, 0.0))
+    return jnp.where(v < 0.0, impact - rel, 0.0)
 
 
 def _relative_velocity(vax, vay, wa, vbx, vby, wb, rax, ray, rbx, rby):
@@ -141,7 +153,7 @@ def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose
 # step: a velocity update is then one elementwise kernel over contiguous rows.
 VEL_ROWS = ("xa", "xb", "ya", "yb", "wa", "wb")  # x of side a, x of side b, y of a, y of b, w of a, w of b
 PUSH_ROWS = {(kind, k): tuple(f"{kind}{k}_{v}" for v in VEL_ROWS) for kind in ("normal", "tangent") for k in range(2)}
-CONST_ROWS = ("nx", "ny", "friction", "restitution",
+CONST_ROWS = ("nx", "ny", "friction", "restitution", "gn",
               "rax0", "rax1", "ray0", "ray1", "rbx0", "rbx1", "rby0", "rby1",
               "nmass0", "nmass1", "tmass0", "tmass1", "rel0", "rel1", "boost0", "boost1") + sum(PUSH_ROWS.values(), ())
 IMPULSE_ROWS = ("n0", "n1", "t0", "t1", "max0", "max1")
@@ -174,7 +186,7 @@ def _push_rows(cc: ContactConstraints, k: int, dx, dy) -> list:
 def pack_constraints(layout: ContactLayout, cc: ContactConstraints) -> jax.Array:
     per_point = (cc.rax, cc.ray, cc.rbx, cc.rby, cc.normal_mass, cc.tangent_mass, cc.relative_velocity,
                  cc.impact_boost)
-    rows = [cc.nx, cc.ny, cc.friction, cc.restitution]
+    rows = [cc.nx, cc.ny, cc.friction, cc.restitution, cc.normal_gravity]
     rows += [x[:, k] for x in per_point for k in range(2)]
     direction = {"normal": (cc.nx, cc.ny), "tangent": (cc.ny, -cc.nx)}
     for kind, k in PUSH_ROWS:

@@ -139,8 +139,10 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
     colours = contact_solver.schedule(loop.const)
     joints = joint_solver.schedule(loop.jc)
     pose, vel, cimp, jimp = _substeps(layout, loop, colours, joints, config)
-    vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, loop.restitution_threshold, colours,
-                            config.impact_sweeps, config.bounce_sweeps)
+    gap = functools.partial(contact_solver.current_separation, layout, loop.cc, pose, loop.pose0,
+                            jnp.int32(config.substeps))
+    vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, gap, loop.h, loop.restitution_threshold,
+                            colours, config.impact_sweeps, config.bounce_sweeps)
     if config.joint_projection is not None:
         frame = joint_solver.frame(loop.joints, loop.jc, pose)
         vel, shift = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h),
@@ -271,7 +273,7 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
                                             rows // broad_phase.MAX_COLOURS)
         valid = valid & placed.reshape((-1, 1) + (1,) * (valid.ndim - 2))
     cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
-                                _pad(b.friction, M), _pad(b.restitution, M), state.gravity)
+                                _pad(b.friction, M), _pad(b.restitution, M), state.gravity, h)
     cimp = contact_solver.pack_impulses(layout, _matched_impulses(state.contacts, manifold.key, valid,
                                                                   config.warm_start))
     loop = LoopData(

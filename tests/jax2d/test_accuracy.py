@@ -18,11 +18,11 @@ def test_newtons_cradle_keeps_its_energy_and_passes_the_impact_to_the_last_ball(
     assert result["frozen"] == 0
 
 
-@pytest.mark.parametrize("e", [0.8, 1.0])
+@pytest.mark.parametrize("e", [0.5, 0.8, 1.0])
 def test_two_bounces_stay_within_5_percent_of_e_squared_h(e):
     """Both bounces of a ball dropped from 1 m. (The first bounce for other restitutions: test_physics.)
-    A bounce needs a launch speed well above g dt: a launch at v peaks g dt / v low in the sampled
-    symplectic-Euler flight (e = 0.5's second bounce, 6 cm, is 9 % low)."""
+    e = 0.5's second bounce is 6 cm: before the half-substep lift and the gap correction of restitution.py
+    it peaked 8.5 % low, then 5.3 % high."""
     result = accuracy.bounce(e)
     print(f"\n[bounce e={e}] apexes {result['apexes']}, against e^2 h and e^4 h: {result['ratios']}")
     assert len(result["ratios"]) == 2

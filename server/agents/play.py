@@ -142,21 +142,25 @@ class AgentRunner:
         self.step_seconds.append(time.perf_counter() - t0)
         return self.action
 
-    def describe(self) -> str:
-        """The last action per binding and the value estimate, e.g. 'M0 + M1 0 M2 - M3 0 T0 on T1 off V +0.42'."""
+    def describe(self, scene: draw.Scene | None = None) -> str:
+        """The last action per binding of the level (every binding when `scene` is None) and the value estimate,
+        e.g. 'M0 + M2 - T0 on  V +0.42'."""
         if self.action is None:
             return "(no action yet)"
-        return f"{action_text(self.action)}  V {self.value:+.2f}"
+        bindings = draw.used_bindings(scene) if scene is not None else None
+        return f"{action_text(self.action, bindings)}  V {self.value:+.2f}"
 
 
-def action_text(action: np.ndarray) -> str:
-    """A multi-discrete action per binding: four motors (+, -, 0) and two thrusters (on, off)."""
+def action_text(action: np.ndarray, bindings: tuple[set[int], set[int]] | None = None) -> str:
+    """A multi-discrete action per binding: motors (+, -, 0) and thrusters (on, off); with `bindings` (motor and
+    thruster bindings, draw.used_bindings) only those the level uses, as the overlay box lists them."""
     action = np.asarray(action).reshape(-1)
     if action.shape[0] != 6:
         return " ".join(str(int(a)) for a in action)
-    motors = " ".join(f"M{b} {MOTOR_SYMBOL.get(int(action[b]), '?')}" for b in range(4))
-    thrusters = " ".join(f"T{b} {'on' if action[4 + b] else 'off'}" for b in range(2))
-    return f"{motors} {thrusters}"
+    motor_bindings, thruster_bindings = bindings if bindings is not None else (range(4), range(2))
+    motors = [f"M{b} {MOTOR_SYMBOL.get(int(action[b]), '?')}" for b in sorted(motor_bindings)]
+    thrusters = [f"T{b} {'on' if action[4 + b] else 'off'}" for b in sorted(thruster_bindings)]
+    return " ".join(motors + thrusters) or "(no controls)"
 
 
 def overlay_rows(action: np.ndarray, value: float, title: str, scene: draw.Scene | None) -> list[tuple[str, tuple]]:
@@ -214,7 +218,7 @@ class AgentController(Controller):
         return end
 
     def hud(self) -> str:
-        return self.runner.describe()
+        return self.runner.describe(self._scene)
 
     def draw(self, session, view: draw.View, banner: str) -> np.ndarray:
         state = session._play[1]
@@ -296,7 +300,7 @@ class RaceController(Controller):
         return self.human.result or "stopped"
 
     def hud(self) -> str:
-        return f"race vs {self.runner.label}  agent: {self.runner.describe()}"
+        return f"race vs {self.runner.label}  agent: {self.runner.describe(self.agent.scene)}"
 
     def draw(self, session, view: draw.View, banner: str) -> np.ndarray:
         half = draw.View(max(view.width // 2 - 2, 32), view.height)  # a 4-pixel divider between the halves

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
+from jax2d.math2d import take_rows
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
 
 # With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, and
@@ -67,12 +68,12 @@ class Candidates:
     """The step's candidate pairs: L rows, each a slot of the all-pairs layout (or padding)."""
 
     num_padded: int  # M
-    slot: jax.Array  # (L,) int32 slot index; S (out of range) for padding rows
-    slot_a: jax.Array  # (L,) body of side a (0 for padding)
-    slot_b: jax.Array  # (L,) body of side b (0 for padding)
-    slot_kind: jax.Array  # (L,) pairs.POLY_POLY ... ; PADDING for padding rows
-    lists: tuple  # per narrow-phase call: (call, rows, bodies a (rows,), bodies b, normal sign or None)
-    dropped: jax.Array  # () int32 close pairs beyond the capacity (over the batch part's union)
+    slot: jax.Array  # (L, B) int32 slot index; S (out of range) for padding rows
+    slot_a: jax.Array  # (L, B) body of side a (0 for padding)
+    slot_b: jax.Array  # (L, B) body of side b (0 for padding)
+    slot_kind: jax.Array  # (L, B) pairs.POLY_POLY ... ; PADDING for padding rows
+    lists: tuple  # per narrow-phase call: (call, rows, bodies a (rows, B), bodies b, normal sign or None)
+    dropped: jax.Array  # (B,) int32 close pairs beyond the capacity, per scene
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -82,13 +83,13 @@ class DynamicLayout:
     num_padded: int
     num_colours: int
     per_colour: int
-    slot_a: jax.Array
+    slot_a: jax.Array  # (L, B), as Candidates
     slot_b: jax.Array
     slot_kind: jax.Array
-    solve_slots: jax.Array  # (C * K,) candidate row at each solve position
-    slot_order: jax.Array  # (L,) solve position of each candidate row
-    solve_sides: jax.Array  # (C, 2K)
-    write_back: jax.Array  # (C, M)
+    solve_slots: jax.Array  # (C * K, B) candidate row at each solve position, per scene
+    slot_order: jax.Array  # (L, B) solve position of each candidate row
+    solve_sides: jax.Array  # (C, 2K, B)
+    write_back: jax.Array  # (C, M, B)
     walls_repeat: bool = True
 
     @property
@@ -114,12 +115,12 @@ def _kind_lists(layout: ContactLayout):
     return out
 
 
-def capacities(layout: ContactLayout, batch: int) -> list[int]:
-    """Candidate rows of each narrow-phase call for a batch part of `batch` scenes (the union of its scenes)."""
+def capacities(layout: ContactLayout) -> list[int]:
+    """Candidate rows of each narrow-phase call, per scene."""
     caps = []
     for _, slots, a, b, _ in _kind_lists(layout):
         bodies = len(np.unique(np.concatenate([a, b])))
-        caps.append(int(min(len(slots), CANDIDATES_PER_BODY * bodies * batch)))
+        caps.append(int(min(len(slots), CANDIDATES_PER_BODY * bodies)))
     return caps
 
 
@@ -149,23 +150,24 @@ def boxes(b, speculative, reach=None) -> jax.Array:
 
 
 def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: int = 0, reach=None) -> Candidates:
-    """The slots whose boxes overlap in some scene (batch-last bodies) and whose bodies may collide
-    (may_collide (S, *batch), pair_filter without joints), compacted per kind; then `extra_rows`
-    padding rows. reach: as in boxes."""
+    """Each scene's slots whose boxes overlap and whose bodies may collide (bodies batch-last (N, ..., B);
+    may_collide (S, B), pair_filter without joints), compacted per kind and scene; then `extra_rows`
+    padding rows. Every index array of the result is (L, B): row l of scene s is that scene's own pair.
+    reach: as in boxes."""
     box = boxes(b, speculative, reach)
-    batch = box.shape[2:]
-    B = int(np.prod(batch)) if batch else 1
+    B = box.shape[2]
     S = layout.num_slots
     lists, slots, sa, sb, kinds = [], [], [], [], []
-    dropped = jnp.int32(0)
-    for (call, idx, a, c, sign), cap in zip(_kind_lists(layout), capacities(layout, B), strict=True):
+    dropped = jnp.zeros((B,), jnp.int32)
+    compact = jax.vmap(lambda close, cap: jnp.nonzero(close, size=cap, fill_value=0)[0], in_axes=(1, None),
+                       out_axes=1)
+    for (call, idx, a, c, sign), cap in zip(_kind_lists(layout), capacities(layout), strict=True):
         ba, bb = box[:, a], box[:, c]
-        overlap = (ba[0] <= bb[2]) & (bb[0] <= ba[2]) & (ba[1] <= bb[3]) & (bb[1] <= ba[3]) & may_collide[idx]
-        close = jnp.any(overlap.reshape((len(idx), -1)), axis=1)
-        count = jnp.sum(close, dtype=jnp.int32)
+        close = (ba[0] <= bb[2]) & (bb[0] <= ba[2]) & (ba[1] <= bb[3]) & (bb[1] <= ba[3]) & may_collide[idx]
+        count = jnp.sum(close, axis=0, dtype=jnp.int32)  # (B,)
         dropped = dropped + jnp.maximum(count - cap, 0)
-        row = jnp.nonzero(close, size=cap, fill_value=0)[0].astype(jnp.int32)
-        filled = jnp.arange(cap) < count
+        row = compact(close, cap).astype(jnp.int32)  # (cap, B)
+        filled = jnp.arange(cap)[:, None] < count
         ia, ic = jnp.asarray(a, jnp.int32)[row], jnp.asarray(c, jnp.int32)[row]
         lists.append((call, cap, ia, ic, None if sign is None else jnp.asarray(sign)[row]))
         slot = jnp.asarray(idx, jnp.int32)[row]
@@ -175,14 +177,14 @@ def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: i
         # The solver's sides keep the slot's own order (a, b), so normals point from a to b.
         sa.append(jnp.asarray(layout.slot_a, jnp.int32)[slot])
         sb.append(jnp.asarray(layout.slot_b, jnp.int32)[slot])
-    pad = jnp.zeros((extra_rows,), jnp.int32)
+    pad = jnp.zeros((extra_rows, B), jnp.int32)
     return Candidates(layout.num_padded, jnp.concatenate(slots + [pad + S]), jnp.concatenate(sa + [pad]),
                       jnp.concatenate(sb + [pad]), jnp.concatenate(kinds + [pad + PADDING]), tuple(lists), dropped)
 
 
-def rows_for(layout: ContactLayout, batch: int) -> tuple[int, int, int]:
-    """(candidate rows before padding, colours, colour width) for a part of `batch` scenes."""
-    rows = max(1, sum(capacities(layout, batch)))
+def rows_for(layout: ContactLayout) -> tuple[int, int, int]:
+    """(candidate rows before padding, colours, colour width) of each scene."""
+    rows = max(1, sum(capacities(layout)))
     width = max(8, -(-2 * rows // MAX_COLOURS))
     return rows, MAX_COLOURS, width
 
@@ -197,20 +199,22 @@ def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: 
     reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
 
     def margin(i, j):
-        return spec + reach[i] + reach[j]
+        return spec + take_rows(reach, i) + take_rows(reach, j)
 
     parts = []
-    for call, _, i, j, sign in cand.lists:
+    for call, _, i, j, sign in cand.lists:  # each scene's own bodies: (rows, B) indices
+        t = functools.partial(take_rows, idx=i)
         if call == "pp":
+            u = functools.partial(take_rows, idx=j)
             parts.append(over_pairs_and_batch(collide_polygons, 8)(
-                pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], margin(i, j)))
+                t(pos), t(ang), t(verts), t(nv), u(pos), u(ang), u(verts), u(nv), margin(i, j)))
         elif call == "pc":
-            m = over_pairs_and_batch(collide_polygon_circle, 6)(pos[i], ang[i], verts[i], nv[i], pos[j], rad[j - P],
-                                                                 margin(i, j))
-            parts.append(dataclasses.replace(m, normal=m.normal * sign.reshape((-1, 1) + (1,) * len(batch))))
+            m = over_pairs_and_batch(collide_polygon_circle, 6)(t(pos), t(ang), t(verts), t(nv), take_rows(pos, j),
+                                                                 take_rows(rad, j - P), margin(i, j))
+            parts.append(dataclasses.replace(m, normal=m.normal * sign[:, None]))
         else:
-            parts.append(over_pairs_and_batch(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P],
-                                                                  margin(i, j)))
+            parts.append(over_pairs_and_batch(collide_circles, 4)(t(pos), take_rows(rad, i - P), take_rows(pos, j),
+                                                                  take_rows(rad, j - P), margin(i, j)))
     n = sum(x[1] for x in cand.lists)
     empty = Manifold(jnp.zeros((total - n, 2)).at[:, 1].set(1.0), jnp.zeros((total - n, 2, 2)),
                      jnp.zeros((total - n, 2)), jnp.full((total - n, 2), -1, jnp.int32),
@@ -228,11 +232,21 @@ def _priority(rows: int) -> np.ndarray:
 
 def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, width: int) -> tuple[DynamicLayout,
                                                                                                   jax.Array]:
-    """Colour the live candidate rows (L,) (a point in some scene); shareable (M,): bodies static in every
-    scene, which may repeat within a colour. Returns the layout and the rows it placed (live ones
-    beyond MAX_COLOURS rounds are not)."""
+    """Colour each scene's live candidate rows (L, B) (a point in the scene); shareable (M, B): bodies static in
+    the scene, which may repeat within a colour. Returns the layout (every index array per scene, batch last)
+    and the rows it placed (L, B) (live ones beyond MAX_COLOURS rounds are not)."""
+    one = functools.partial(_colour_scene, num_padded=num_padded, colours=colours, width=width)
+    solve, order, sides, back, placed = jax.vmap(one, in_axes=1, out_axes=-1)(cand.slot_a, cand.slot_b, live,
+                                                                             shareable)
+    layout = DynamicLayout(num_padded, colours, width, cand.slot_a, cand.slot_b, cand.slot_kind, solve, order, sides,
+                           back)
+    return layout, placed
+
+
+def _colour_scene(a, b, live, shareable, *, num_padded: int, colours: int, width: int):
+    """colour for one scene: (L,) sides and live rows, (M,) shareable -> (solve slots, slot order, solve sides,
+    write back, placed)."""
     L, M = live.shape[0], num_padded
-    a, b = cand.slot_a, cand.slot_b
     prio = jnp.asarray(_priority(L))
     share_a, share_b = shareable[a], shareable[b]
     none = jnp.int32(L)
@@ -275,8 +289,7 @@ def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, wid
     c_idx = jnp.where(placed, col, colours)
     back = jnp.tile(jnp.arange(M, dtype=jnp.int32), (colours, 1))
     back = back.at[c_idx, a].set(M + k, mode="drop").at[c_idx, b].set(M + width + k, mode="drop")
-    layout = DynamicLayout(M, colours, width, a, b, cand.slot_kind, solve, order, sides, back)
-    return layout, placed
+    return solve, order, sides, back, placed
 
 
 class Overflow(NamedTuple):
@@ -298,14 +311,14 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     scene = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)
     may = pair_filter(layout, scene.bodies, jnp.zeros((layout.num_slots, 1), bool), M)
     spec = jnp.full((1,), params.speculative_distance, jnp.float32)
-    rows, colours, width = rows_for(layout, 1)
+    rows, colours, width = rows_for(layout)
     reach = step_reach(scene, params.dt)
     cand = candidates(layout, scene.bodies, spec, may, colours * width - rows, reach)
     manifold = narrow_phase(cand, scene.bodies, spec, functools.partial(_over_pairs_and_batch, batch=(1,)),
                             colours * width, reach)
-    jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]
-    live = jnp.any(manifold.valid[..., 0], axis=1) & (cand.slot_kind != PADDING) & ~jointed
+    jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]  # (L, 1)
+    live = jnp.any(manifold.valid, axis=1) & (cand.slot_kind != PADDING) & ~jointed
     b = state.bodies
-    moving = jnp.zeros((M,), bool).at[:b.active.shape[0]].set(b.active & (b.inv_mass > 0))
+    moving = jnp.zeros((M, 1), bool).at[:b.active.shape[0], 0].set(b.active & (b.inv_mass > 0))
     _, placed = colour(cand, live, ~moving, M, colours, width)
-    return Overflow(int(cand.dropped), int(jnp.sum(live & ~placed)))
+    return Overflow(int(jnp.sum(cand.dropped)), int(jnp.sum(live & ~placed)))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import importlib
 
@@ -26,17 +27,20 @@ def _colouring(state):
     layout = contact_layout(state.num_polygons, state.num_circles)
     M, S = layout.num_padded, layout.num_slots
     b = jax.tree.map(lambda x: x[..., None], state.bodies)
-    rows, colours, width = broad_phase.rows_for(layout, 1)
+    rows, colours, width = broad_phase.rows_for(layout)
     spec = jnp.full((1,), 0.04)
     may = step_module.pair_filter(layout, b, jnp.zeros((S, 1), bool), M)
     cand = broad_phase.candidates(layout, b, spec, may, colours * width - rows)
     manifold = broad_phase.narrow_phase(cand, b, spec, functools.partial(step_module._over_pairs_and_batch,
                                                                          batch=(1,)), colours * width)
-    live = np.asarray(jnp.any(manifold.valid[..., 0], axis=1) & (cand.slot_kind != 4))
+    live = np.asarray(jnp.any(manifold.valid, axis=1) & (cand.slot_kind != 4))  # (L, 1): one scene
     dyn = np.asarray(state.bodies.active & (state.bodies.inv_mass > 0))
-    shareable = jnp.asarray(np.pad(~dyn, (0, M - len(dyn)), constant_values=True))
+    shareable = jnp.asarray(np.pad(~dyn, (0, M - len(dyn)), constant_values=True))[:, None]
     solved, placed = broad_phase.colour(cand, jnp.asarray(live), shareable, M, colours, width)
-    return cand, live, np.asarray(placed), solved, np.asarray(shareable)
+    one = functools.partial(jax.tree.map, lambda x: np.asarray(x)[..., 0])
+    solved = dataclasses.replace(solved, **{f: one(getattr(solved, f)) for f in (
+        "slot_a", "slot_b", "slot_kind", "solve_slots", "slot_order", "solve_sides", "write_back")})
+    return cand, live[:, 0], np.asarray(placed)[:, 0], solved, np.asarray(shareable)[:, 0]
 
 
 def test_colouring_places_every_touching_pair_once_and_no_moving_body_twice_per_colour():

@@ -8,16 +8,18 @@ which the narrow phase was 5-7 ms and the rest the sweeps (211 colours, 12 sweep
 Here each step instead:
 1. bounds every body by a box (its AABB grown by half the speculative distance on each side) and
    keeps the slots whose two boxes overlap and whose bodies may collide (one cheap elementwise test
-   per slot, any scene of the batch part), compacted into a fixed-capacity candidate list per kind
-   of pair (`capacities`);
+   per slot and scene), compacted into each scene's own fixed-capacity candidate list per kind of
+   pair (`capacities`);
 2. runs the narrow phase on the candidates only;
-3. colours the candidates that hold a point, in `jit`: rounds of a parallel greedy matching (a pair
-   joins the round's colour when it has the lowest of a fixed pseudo-random priority among the
-   uncoloured pairs at each of its moving bodies; three tries per round). A body static in every
-   scene of the part may repeat within a colour (its velocity never changes), as in
-   pairs.wall_grouped;
+3. colours each scene's candidates that hold a point, in `jit`: rounds of a parallel greedy matching
+   (a pair joins the round's colour when it has the lowest of a fixed pseudo-random priority among
+   the uncoloured pairs at each of its moving bodies; three tries per round). A body static in the
+   scene may repeat within a colour (its velocity never changes), as in pairs.wall_grouped;
 4. hands the contact solver a `DynamicLayout`: the same attributes as pairs.ContactLayout with
-   traced arrays, so the sweeps visit only the few colours of the touching pairs.
+   traced arrays, one set per scene (batch last), so the sweeps visit only the few colours of the
+   touching pairs and gather each scene's sides with its own indices (math2d.take_rows).
+Everything is per scene, so a scene's result does not depend on the batch it is stepped in, and a
+batch costs about its size times one scene.
 The persistent state is unchanged (one slot per pair): results are gathered from and scattered
 back to the slots, so warm starting matches impulses by slot and feature key as before.
 
@@ -42,13 +44,12 @@ from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, col
 from jax2d.math2d import take_rows
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
 
-# With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, and
-# so do single scenes (a batch part of one) of more than AUTO_SINGLE_BODIES. Measured on this 2-core
-# machine under load (docs/engine.md): the xl bench scene (80 bodies) at batch 1 took 2.1-2.4 ms a
-# step with it and 3.5-5.0 ms without; at batch 16 both took 70-80 ms, because the candidate list
-# is the union over the batch part and grows to every slot (see capacities).
-AUTO_BODIES = 100
-AUTO_SINGLE_BODIES = 40
+# With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, at any
+# batch size: candidates and colourings are per scene, so its cost grows with the batch as the all-pairs
+# path's does. Measured on this 2-core machine under load (docs/engine.md): the xl bench scene (80 bodies)
+# took 2.2-2.4 against 3.5-3.9 ms a step at batch 1, 20-23 against 25-29 ms at batch 16 and 115-150
+# against 180-275 ms at batch 64; the l class (16 bodies) is fastest with all pairs.
+AUTO_BODIES = 40
 # Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
 # (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).
 CANDIDATES_PER_BODY = 4
@@ -56,11 +57,11 @@ MAX_COLOURS = 32  # colouring rounds; a colour holds up to 2 x candidates / MAX_
 TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)
 
 
-def uses_broad_phase(broad_phase: bool | None, num_bodies: int, batch: int = 1) -> bool:
-    """Whether a batch part of `batch` scenes of `num_bodies` bodies is stepped with the broad phase."""
+def uses_broad_phase(broad_phase: bool | None, num_bodies: int) -> bool:
+    """Whether scenes of `num_bodies` bodies are stepped with the broad phase (SolverConfig.broad_phase)."""
     if broad_phase is not None:
         return bool(broad_phase)
-    return num_bodies > AUTO_BODIES or (batch == 1 and num_bodies > AUTO_SINGLE_BODIES)
+    return num_bodies > AUTO_BODIES
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -117,7 +117,7 @@ def _step_in_parts(states: SimState, params: SimParams, motor_actions, thruster_
 def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_actions, config: SolverConfig):
     """step_batch on one part of the batch (params already per scene)."""
     layout = contact_layout(states.num_polygons, states.num_circles, config.num_static)
-    if broad_phase.uses_broad_phase(config.broad_phase, layout.num_bodies, states.bodies.active.shape[0]):
+    if broad_phase.uses_broad_phase(config.broad_phase, layout.num_bodies):
         return _step_chunk_broad(layout, states, params, motor_actions, thruster_actions, config)
     M = layout.num_padded
     # The joint closure runs per scene; from there on every array is batch-last.

@@ -238,7 +238,8 @@ def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, wid
     and the rows it placed (L, B) (live ones beyond MAX_COLOURS rounds are not)."""
     # The rounds visit the candidate rows only: the padding rows after them (extra_rows) are never live.
     n = sum(x[1] for x in cand.lists)
-    col, pos = _rounds(cand.slot_a[:n], cand.slot_b[:n], live[:n], shareable, num_padded, colours, width)
+    col, pos = _rounds(cand.slot_a[:n], cand.slot_b[:n], live[:n], shareable, num_padded, colours, width,
+                       _priority(live.shape[0])[:n])
     fill = jnp.full((live.shape[0] - n,) + col.shape[1:], -1, jnp.int32)
     col, pos = jnp.concatenate([col, fill]), jnp.concatenate([pos, fill])
     one = functools.partial(_positions, num_padded=num_padded, colours=colours, width=width)
@@ -248,12 +249,13 @@ def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, wid
     return layout, col >= 0
 
 
-def _rounds(a, b, live, shareable, M: int, colours: int, width: int):
+def _rounds(a, b, live, shareable, M: int, colours: int, width: int, priority: np.ndarray):
     """The colouring rounds for every scene at once: (L, B) colour and solve position of each row (-1: none).
 
     Batch-last with flat indices (body * B + scene) into (M * B,) arrays, so each scatter and gather is a
     plain one-dimensional one: the same rounds under vmap (a batched scatter per try) took 16x longer at
-    batch 16 than at batch 1.
+    batch 16 than at batch 1. priority: (L,) each row's distinct tie-breaker (the padded list's _priority
+    cut to the candidate rows, so a scene is coloured as when the rounds visited the padding rows too).
     """
     L, B = live.shape
     scene = jnp.arange(B, dtype=jnp.int32)
@@ -262,8 +264,8 @@ def _rounds(a, b, live, shareable, M: int, colours: int, width: int):
     sa, sb = jnp.where(live.reshape(-1), fa, M * B), jnp.where(live.reshape(-1), fb, M * B)
     share = shareable.reshape(-1)
     share_a, share_b = share[fa].reshape(L, B), share[fb].reshape(L, B)
-    prio = jnp.asarray(_priority(L))[:, None]
-    none = jnp.int32(L)
+    prio = jnp.asarray(priority)[:, None]
+    none = jnp.int32(np.iinfo(np.int32).max)  # above every priority
 
     def one_round(carry):
         r, col, pos = carry

@@ -125,8 +125,7 @@ def take_rows(x, idx, axis: int = 0, fill=None):
     so no scene's index reaches another scene's data. fill: the value at out-of-range indices (None: every
     index is in range).
     """
-    idx = jnp.asarray(idx)
-    if idx.ndim == 1:
+    if jnp.ndim(idx) == 1:  # as given: a numpy index stays a compile-time constant, as in plain indexing
         if fill is None:
             return x[(slice(None),) * (axis % x.ndim) + (idx,)]
         return jnp.take(x, idx, axis=axis, mode="fill", fill_value=fill)
@@ -134,6 +133,7 @@ def take_rows(x, idx, axis: int = 0, fill=None):
     if axis != x.ndim - 2:  # bring the axis next to the batch, where the flat gather needs no transpose
         return jnp.moveaxis(take_rows(jnp.moveaxis(x, axis, -2), idx, -2, fill), -2, axis)
     N, B = x.shape[-2:]
+    idx = jnp.asarray(idx)
     flat = x.reshape(x.shape[:-2] + (N * B,))
     i = (jnp.minimum(idx, N) * B + jnp.arange(B, dtype=idx.dtype)).reshape(-1)
     if fill is None:

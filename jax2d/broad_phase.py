@@ -46,9 +46,9 @@ from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_P
 
 # With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, at any
 # batch size: candidates and colourings are per scene, so its cost grows with the batch as the all-pairs
-# path's does. Measured on this 2-core machine under load (docs/engine.md): the xl bench scene (80 bodies)
-# took 2.2-2.4 against 3.5-3.9 ms a step at batch 1, 20-23 against 25-29 ms at batch 16 and 115-150
-# against 180-275 ms at batch 64; the l class (16 bodies) is fastest with all pairs.
+# path's does. Measured on this 2-core machine under load (docs/engine.md; 20-step scans, one device): the
+# xl bench scene (80 bodies) took 2.2-2.8 against 3.2-5.9 ms a step at batch 1, 20-31 against 25-48 ms at
+# batch 16 and 108-115 against 165-180 ms at batch 64; the l class (16 bodies) is fastest with all pairs.
 AUTO_BODIES = 40
 # Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
 # (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).

@@ -8,16 +8,18 @@ which the narrow phase was 5-7 ms and the rest the sweeps (211 colours, 12 sweep
 Here each step instead:
 1. bounds every body by a box (its AABB grown by half the speculative distance on each side) and
    keeps the slots whose two boxes overlap and whose bodies may collide (one cheap elementwise test
-   per slot, any scene of the batch part), compacted into a fixed-capacity candidate list per kind
-   of pair (`capacities`);
+   per slot and scene), compacted into each scene's own fixed-capacity candidate list per kind of
+   pair (`capacities`);
 2. runs the narrow phase on the candidates only;
-3. colours the candidates that hold a point, in `jit`: rounds of a parallel greedy matching (a pair
-   joins the round's colour when it has the lowest of a fixed pseudo-random priority among the
-   uncoloured pairs at each of its moving bodies; three tries per round). A body static in every
-   scene of the part may repeat within a colour (its velocity never changes), as in
-   pairs.wall_grouped;
+3. colours each scene's candidates that hold a point, in `jit`: rounds of a parallel greedy matching
+   (a pair joins the round's colour when it has the lowest of a fixed pseudo-random priority among
+   the uncoloured pairs at each of its moving bodies; three tries per round). A body static in the
+   scene may repeat within a colour (its velocity never changes), as in pairs.wall_grouped;
 4. hands the contact solver a `DynamicLayout`: the same attributes as pairs.ContactLayout with
-   traced arrays, so the sweeps visit only the few colours of the touching pairs.
+   traced arrays, one set per scene (batch last), so the sweeps visit only the few colours of the
+   touching pairs and gather each scene's sides with its own indices (math2d.take_rows).
+Everything is per scene, so a scene's result does not depend on the batch it is stepped in, and a
+batch costs about its size times one scene.
 The persistent state is unchanged (one slot per pair): results are gathered from and scattered
 back to the slots, so warm starting matches impulses by slot and feature key as before.
 
@@ -39,15 +41,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
+from jax2d.math2d import take_rows
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
 
-# With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, and
-# so do single scenes (a batch part of one) of more than AUTO_SINGLE_BODIES. Measured on this 2-core
-# machine under load (docs/engine.md): the xl bench scene (80 bodies) at batch 1 took 2.1-2.4 ms a
-# step with it and 3.5-5.0 ms without; at batch 16 both took 70-80 ms, because the candidate list
-# is the union over the batch part and grows to every slot (see capacities).
-AUTO_BODIES = 100
-AUTO_SINGLE_BODIES = 40
+# With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, at any
+# batch size: candidates and colourings are per scene, so its cost grows with the batch as the all-pairs
+# path's does. Measured on this 2-core machine under load (docs/engine.md; 20-step scans, one device): the
+# xl bench scene (80 bodies) took 2.2-2.8 against 3.2-5.9 ms a step at batch 1, 20-31 against 25-48 ms at
+# batch 16 and 108-115 against 165-180 ms at batch 64; the l class (16 bodies) is fastest with all pairs.
+AUTO_BODIES = 40
 # Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
 # (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).
 CANDIDATES_PER_BODY = 4
@@ -55,11 +57,11 @@ MAX_COLOURS = 32  # colouring rounds; a colour holds up to 2 x candidates / MAX_
 TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)
 
 
-def uses_broad_phase(broad_phase: bool | None, num_bodies: int, batch: int = 1) -> bool:
-    """Whether a batch part of `batch` scenes of `num_bodies` bodies is stepped with the broad phase."""
+def uses_broad_phase(broad_phase: bool | None, num_bodies: int) -> bool:
+    """Whether scenes of `num_bodies` bodies are stepped with the broad phase (SolverConfig.broad_phase)."""
     if broad_phase is not None:
         return bool(broad_phase)
-    return num_bodies > AUTO_BODIES or (batch == 1 and num_bodies > AUTO_SINGLE_BODIES)
+    return num_bodies > AUTO_BODIES
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -67,12 +69,12 @@ class Candidates:
     """The step's candidate pairs: L rows, each a slot of the all-pairs layout (or padding)."""
 
     num_padded: int  # M
-    slot: jax.Array  # (L,) int32 slot index; S (out of range) for padding rows
-    slot_a: jax.Array  # (L,) body of side a (0 for padding)
-    slot_b: jax.Array  # (L,) body of side b (0 for padding)
-    slot_kind: jax.Array  # (L,) pairs.POLY_POLY ... ; PADDING for padding rows
-    lists: tuple  # per narrow-phase call: (call, rows, bodies a (rows,), bodies b, normal sign or None)
-    dropped: jax.Array  # () int32 close pairs beyond the capacity (over the batch part's union)
+    slot: jax.Array  # (L, B) int32 slot index; S (out of range) for padding rows
+    slot_a: jax.Array  # (L, B) body of side a (0 for padding)
+    slot_b: jax.Array  # (L, B) body of side b (0 for padding)
+    slot_kind: jax.Array  # (L, B) pairs.POLY_POLY ... ; PADDING for padding rows
+    lists: tuple  # per narrow-phase call: (call, rows, bodies a (rows, B), bodies b, normal sign or None)
+    dropped: jax.Array  # (B,) int32 close pairs beyond the capacity, per scene
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -82,13 +84,13 @@ class DynamicLayout:
     num_padded: int
     num_colours: int
     per_colour: int
-    slot_a: jax.Array
+    slot_a: jax.Array  # (L, B), as Candidates
     slot_b: jax.Array
     slot_kind: jax.Array
-    solve_slots: jax.Array  # (C * K,) candidate row at each solve position
-    slot_order: jax.Array  # (L,) solve position of each candidate row
-    solve_sides: jax.Array  # (C, 2K)
-    write_back: jax.Array  # (C, M)
+    solve_slots: jax.Array  # (C * K, B) candidate row at each solve position, per scene
+    slot_order: jax.Array  # (L, B) solve position of each candidate row
+    solve_sides: jax.Array  # (C, 2K, B)
+    write_back: jax.Array  # (C, M, B)
     walls_repeat: bool = True
 
     @property
@@ -114,12 +116,12 @@ def _kind_lists(layout: ContactLayout):
     return out
 
 
-def capacities(layout: ContactLayout, batch: int) -> list[int]:
-    """Candidate rows of each narrow-phase call for a batch part of `batch` scenes (the union of its scenes)."""
+def capacities(layout: ContactLayout) -> list[int]:
+    """Candidate rows of each narrow-phase call, per scene."""
     caps = []
     for _, slots, a, b, _ in _kind_lists(layout):
         bodies = len(np.unique(np.concatenate([a, b])))
-        caps.append(int(min(len(slots), CANDIDATES_PER_BODY * bodies * batch)))
+        caps.append(int(min(len(slots), CANDIDATES_PER_BODY * bodies)))
     return caps
 
 
@@ -149,23 +151,24 @@ def boxes(b, speculative, reach=None) -> jax.Array:
 
 
 def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: int = 0, reach=None) -> Candidates:
-    """The slots whose boxes overlap in some scene (batch-last bodies) and whose bodies may collide
-    (may_collide (S, *batch), pair_filter without joints), compacted per kind; then `extra_rows`
-    padding rows. reach: as in boxes."""
+    """Each scene's slots whose boxes overlap and whose bodies may collide (bodies batch-last (N, ..., B);
+    may_collide (S, B), pair_filter without joints), compacted per kind and scene; then `extra_rows`
+    padding rows. Every index array of the result is (L, B): row l of scene s is that scene's own pair.
+    reach: as in boxes."""
     box = boxes(b, speculative, reach)
-    batch = box.shape[2:]
-    B = int(np.prod(batch)) if batch else 1
+    B = box.shape[2]
     S = layout.num_slots
     lists, slots, sa, sb, kinds = [], [], [], [], []
-    dropped = jnp.int32(0)
-    for (call, idx, a, c, sign), cap in zip(_kind_lists(layout), capacities(layout, B), strict=True):
+    dropped = jnp.zeros((B,), jnp.int32)
+    compact = jax.vmap(lambda close, cap: jnp.nonzero(close, size=cap, fill_value=0)[0], in_axes=(1, None),
+                       out_axes=1)
+    for (call, idx, a, c, sign), cap in zip(_kind_lists(layout), capacities(layout), strict=True):
         ba, bb = box[:, a], box[:, c]
-        overlap = (ba[0] <= bb[2]) & (bb[0] <= ba[2]) & (ba[1] <= bb[3]) & (bb[1] <= ba[3]) & may_collide[idx]
-        close = jnp.any(overlap.reshape((len(idx), -1)), axis=1)
-        count = jnp.sum(close, dtype=jnp.int32)
+        close = (ba[0] <= bb[2]) & (bb[0] <= ba[2]) & (ba[1] <= bb[3]) & (bb[1] <= ba[3]) & may_collide[idx]
+        count = jnp.sum(close, axis=0, dtype=jnp.int32)  # (B,)
         dropped = dropped + jnp.maximum(count - cap, 0)
-        row = jnp.nonzero(close, size=cap, fill_value=0)[0].astype(jnp.int32)
-        filled = jnp.arange(cap) < count
+        row = compact(close, cap).astype(jnp.int32)  # (cap, B)
+        filled = jnp.arange(cap)[:, None] < count
         ia, ic = jnp.asarray(a, jnp.int32)[row], jnp.asarray(c, jnp.int32)[row]
         lists.append((call, cap, ia, ic, None if sign is None else jnp.asarray(sign)[row]))
         slot = jnp.asarray(idx, jnp.int32)[row]
@@ -175,14 +178,14 @@ def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: i
         # The solver's sides keep the slot's own order (a, b), so normals point from a to b.
         sa.append(jnp.asarray(layout.slot_a, jnp.int32)[slot])
         sb.append(jnp.asarray(layout.slot_b, jnp.int32)[slot])
-    pad = jnp.zeros((extra_rows,), jnp.int32)
+    pad = jnp.zeros((extra_rows, B), jnp.int32)
     return Candidates(layout.num_padded, jnp.concatenate(slots + [pad + S]), jnp.concatenate(sa + [pad]),
                       jnp.concatenate(sb + [pad]), jnp.concatenate(kinds + [pad + PADDING]), tuple(lists), dropped)
 
 
-def rows_for(layout: ContactLayout, batch: int) -> tuple[int, int, int]:
-    """(candidate rows before padding, colours, colour width) for a part of `batch` scenes."""
-    rows = max(1, sum(capacities(layout, batch)))
+def rows_for(layout: ContactLayout) -> tuple[int, int, int]:
+    """(candidate rows before padding, colours, colour width) of each scene."""
+    rows = max(1, sum(capacities(layout)))
     width = max(8, -(-2 * rows // MAX_COLOURS))
     return rows, MAX_COLOURS, width
 
@@ -197,20 +200,22 @@ def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: 
     reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
 
     def margin(i, j):
-        return spec + reach[i] + reach[j]
+        return spec + take_rows(reach, i) + take_rows(reach, j)
 
     parts = []
-    for call, _, i, j, sign in cand.lists:
+    for call, _, i, j, sign in cand.lists:  # each scene's own bodies: (rows, B) indices
+        t = functools.partial(take_rows, idx=i)
         if call == "pp":
+            u = functools.partial(take_rows, idx=j)
             parts.append(over_pairs_and_batch(collide_polygons, 8)(
-                pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], margin(i, j)))
+                t(pos), t(ang), t(verts), t(nv), u(pos), u(ang), u(verts), u(nv), margin(i, j)))
         elif call == "pc":
-            m = over_pairs_and_batch(collide_polygon_circle, 6)(pos[i], ang[i], verts[i], nv[i], pos[j], rad[j - P],
-                                                                 margin(i, j))
-            parts.append(dataclasses.replace(m, normal=m.normal * sign.reshape((-1, 1) + (1,) * len(batch))))
+            m = over_pairs_and_batch(collide_polygon_circle, 6)(t(pos), t(ang), t(verts), t(nv), take_rows(pos, j),
+                                                                 take_rows(rad, j - P), margin(i, j))
+            parts.append(dataclasses.replace(m, normal=m.normal * sign[:, None]))
         else:
-            parts.append(over_pairs_and_batch(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P],
-                                                                  margin(i, j)))
+            parts.append(over_pairs_and_batch(collide_circles, 4)(t(pos), take_rows(rad, i - P), take_rows(pos, j),
+                                                                  take_rows(rad, j - P), margin(i, j)))
     n = sum(x[1] for x in cand.lists)
     empty = Manifold(jnp.zeros((total - n, 2)).at[:, 1].set(1.0), jnp.zeros((total - n, 2, 2)),
                      jnp.zeros((total - n, 2)), jnp.full((total - n, 2), -1, jnp.int32),
@@ -228,29 +233,56 @@ def _priority(rows: int) -> np.ndarray:
 
 def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, width: int) -> tuple[DynamicLayout,
                                                                                                   jax.Array]:
-    """Colour the live candidate rows (L,) (a point in some scene); shareable (M,): bodies static in every
-    scene, which may repeat within a colour. Returns the layout and the rows it placed (live ones
-    beyond MAX_COLOURS rounds are not)."""
-    L, M = live.shape[0], num_padded
-    a, b = cand.slot_a, cand.slot_b
-    prio = jnp.asarray(_priority(L))
-    share_a, share_b = shareable[a], shareable[b]
-    none = jnp.int32(L)
+    """Colour each scene's live candidate rows (L, B) (a point in the scene); shareable (M, B): bodies static in
+    the scene, which may repeat within a colour. Returns the layout (every index array per scene, batch last)
+    and the rows it placed (L, B) (live ones beyond MAX_COLOURS rounds are not)."""
+    # The rounds visit the candidate rows only: the padding rows after them (extra_rows) are never live.
+    n = sum(x[1] for x in cand.lists)
+    col, pos = _rounds(cand.slot_a[:n], cand.slot_b[:n], live[:n], shareable, num_padded, colours, width,
+                       _priority(live.shape[0])[:n])
+    fill = jnp.full((live.shape[0] - n,) + col.shape[1:], -1, jnp.int32)
+    col, pos = jnp.concatenate([col, fill]), jnp.concatenate([pos, fill])
+    one = functools.partial(_positions, num_padded=num_padded, colours=colours, width=width)
+    solve, order, sides, back = jax.vmap(one, in_axes=1, out_axes=-1)(cand.slot_a, cand.slot_b, col, pos)
+    layout = DynamicLayout(num_padded, colours, width, cand.slot_a, cand.slot_b, cand.slot_kind, solve, order, sides,
+                           back)
+    return layout, col >= 0
+
+
+def _rounds(a, b, live, shareable, M: int, colours: int, width: int, priority: np.ndarray):
+    """The colouring rounds for every scene at once: (L, B) colour and solve position of each row (-1: none).
+
+    Batch-last with flat indices (body * B + scene) into (M * B,) arrays, so each scatter and gather is a
+    plain one-dimensional one: the same rounds under vmap (a batched scatter per try) took 16x longer at
+    batch 16 than at batch 1. priority: (L,) each row's distinct tie-breaker (the padded list's _priority
+    cut to the candidate rows, so a scene is coloured as when the rounds visited the padding rows too).
+    """
+    L, B = live.shape
+    scene = jnp.arange(B, dtype=jnp.int32)
+    fa, fb = (a * B + scene).reshape(-1), (b * B + scene).reshape(-1)
+    # Rows that are not live scatter nowhere (an index past the end, dropped): most rows in a step.
+    sa, sb = jnp.where(live.reshape(-1), fa, M * B), jnp.where(live.reshape(-1), fb, M * B)
+    share = shareable.reshape(-1)
+    share_a, share_b = share[fa].reshape(L, B), share[fb].reshape(L, B)
+    prio = jnp.asarray(priority)[:, None]
+    none = jnp.int32(np.iinfo(np.int32).max)  # above every priority
 
     def one_round(carry):
         r, col, pos = carry
         free = live & (col < 0)
-        chosen = jnp.zeros((L,), bool)
-        blocked = jnp.zeros((L,), bool)
+        chosen = jnp.zeros((L, B), bool)
+        blocked = jnp.zeros((L, B), bool)
         for _ in range(TRIES_PER_COLOUR):
             try_ = free & ~blocked & ~chosen
             p = jnp.where(try_, prio, none)
-            best = jnp.full((M,), none).at[a].min(p).at[b].min(p)
-            win = try_ & ((best[a] == p) | share_a) & ((best[b] == p) | share_b)
+            best = jnp.full((M * B,), none).at[sa].min(p.reshape(-1), mode="drop").at[sb].min(p.reshape(-1),
+                                                                                               mode="drop")
+            win = try_ & ((best[fa].reshape(L, B) == p) | share_a) & ((best[fb].reshape(L, B) == p) | share_b)
             chosen = chosen | win
-            used = jnp.zeros((M,), bool).at[a].max(chosen).at[b].max(chosen) & ~shareable
-            blocked = used[a] | used[b]
-        rank = jnp.cumsum(chosen, dtype=jnp.int32) - 1
+            c = chosen.reshape(-1)
+            used = jnp.zeros((M * B,), bool).at[sa].max(c, mode="drop").at[sb].max(c, mode="drop") & ~share
+            blocked = (used[fa] | used[fb]).reshape(L, B)
+        rank = jnp.cumsum(chosen, axis=0, dtype=jnp.int32) - 1
         take = chosen & (rank < width)
         return r + 1, jnp.where(take, r, col), jnp.where(take, r * width + rank, pos)
 
@@ -258,8 +290,15 @@ def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, wid
         r, col, _ = carry
         return (r < colours) & jnp.any(live & (col < 0))
 
-    start = (jnp.int32(0), jnp.full((L,), -1, jnp.int32), jnp.full((L,), -1, jnp.int32))
+    start = (jnp.int32(0), jnp.full((L, B), -1, jnp.int32), jnp.full((L, B), -1, jnp.int32))
     _, col, pos = jax.lax.while_loop(more, one_round, start)
+    return col, pos
+
+
+def _positions(a, b, col, pos, *, num_padded: int, colours: int, width: int):
+    """One scene's layout arrays from its colouring ((L,) sides, colours and positions): (solve slots, slot
+    order, solve sides, write back)."""
+    L, M = col.shape[0], num_padded
     placed = col >= 0
     # Solve positions: placed rows where the colouring put them, every other row in a free position.
     n = colours * width
@@ -275,8 +314,7 @@ def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, wid
     c_idx = jnp.where(placed, col, colours)
     back = jnp.tile(jnp.arange(M, dtype=jnp.int32), (colours, 1))
     back = back.at[c_idx, a].set(M + k, mode="drop").at[c_idx, b].set(M + width + k, mode="drop")
-    layout = DynamicLayout(M, colours, width, a, b, cand.slot_kind, solve, order, sides, back)
-    return layout, placed
+    return solve, order, sides, back
 
 
 class Overflow(NamedTuple):
@@ -298,14 +336,14 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     scene = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)
     may = pair_filter(layout, scene.bodies, jnp.zeros((layout.num_slots, 1), bool), M)
     spec = jnp.full((1,), params.speculative_distance, jnp.float32)
-    rows, colours, width = rows_for(layout, 1)
+    rows, colours, width = rows_for(layout)
     reach = step_reach(scene, params.dt)
     cand = candidates(layout, scene.bodies, spec, may, colours * width - rows, reach)
     manifold = narrow_phase(cand, scene.bodies, spec, functools.partial(_over_pairs_and_batch, batch=(1,)),
                             colours * width, reach)
-    jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]
-    live = jnp.any(manifold.valid[..., 0], axis=1) & (cand.slot_kind != PADDING) & ~jointed
+    jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]  # (L, 1)
+    live = jnp.any(manifold.valid, axis=1) & (cand.slot_kind != PADDING) & ~jointed
     b = state.bodies
-    moving = jnp.zeros((M,), bool).at[:b.active.shape[0]].set(b.active & (b.inv_mass > 0))
+    moving = jnp.zeros((M, 1), bool).at[:b.active.shape[0], 0].set(b.active & (b.inv_mass > 0))
     _, placed = colour(cand, live, ~moving, M, colours, width)
-    return Overflow(int(cand.dropped), int(jnp.sum(live & ~placed)))
+    return Overflow(int(jnp.sum(cand.dropped)), int(jnp.sum(live & ~placed)))

@@ -18,7 +18,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jax2d.math2d import Pose, Softness, Vel, at, cross, rotate, safe_inverse, set_at, stored
+from jax2d.math2d import Pose, Softness, Vel, at, cross, rotate, safe_inverse, set_at, stored, take_rows
 from jax2d.pairs import ContactLayout
 
 
@@ -56,12 +56,14 @@ def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_ma
     """Build constraints from the step's manifolds (one row per slot), on batch-last arrays:
     per body (M, *batch), manifold fields with the batch after their own axes; gravity (2, *batch);
     h: the substep."""
-    a, b = layout.slot_a, layout.slot_b
+    a, b = layout.slot_a, layout.slot_b  # (S,), or (S, B): each scene's own pairs (broad_phase)
+    ta = functools.partial(take_rows, idx=a)
+    tb = functools.partial(take_rows, idx=b)
     nx, ny = manifold.normal[:, 0], manifold.normal[:, 1]
     px, py = manifold.point[:, :, 0], manifold.point[:, :, 1]
-    rax, ray = px - pose.x[a][:, None], py - pose.y[a][:, None]
-    rbx, rby = px - pose.x[b][:, None], py - pose.y[b][:, None]
-    ma, ia, mb, ib = inv_mass[a], inv_inertia[a], inv_mass[b], inv_inertia[b]
+    rax, ray = px - ta(pose.x)[:, None], py - ta(pose.y)[:, None]
+    rbx, rby = px - tb(pose.x)[:, None], py - tb(pose.y)[:, None]
+    ma, ia, mb, ib = ta(inv_mass), ta(inv_inertia), tb(inv_mass), tb(inv_inertia)
     n_x, n_y = nx[:, None], ny[:, None]
     base = manifold.separation - ((rbx - rax) * n_x + (rby - ray) * n_y)
 
@@ -70,14 +72,14 @@ def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_ma
         k = (ma + mb)[:, None] + ia[:, None] * rna**2 + ib[:, None] * rnb**2
         return jnp.where(valid, safe_inverse(k), 0.0)
 
-    dvx, dvy = _relative_velocity(vel.x[a][:, None], vel.y[a][:, None], vel.w[a][:, None],
-                                  vel.x[b][:, None], vel.y[b][:, None], vel.w[b][:, None], rax, ray, rbx, rby)
+    dvx, dvy = _relative_velocity(ta(vel.x)[:, None], ta(vel.y)[:, None], ta(vel.w)[:, None],
+                                  tb(vel.x)[:, None], tb(vel.y)[:, None], tb(vel.w)[:, None], rax, ray, rbx, rby)
     rel = dvx * n_x + dvy * n_y
     acc = normal_gravity(nx, ny, ma, mb, gravity)
     return ContactConstraints(
         nx=nx, ny=ny,
-        friction=jnp.sqrt(friction[a] * friction[b]),
-        restitution=jnp.maximum(restitution[a], restitution[b]),
+        friction=jnp.sqrt(ta(friction) * tb(friction)),
+        restitution=jnp.maximum(ta(restitution), tb(restitution)),
         ma=ma, ia=ia, mb=mb, ib=ib,
         rax=rax, ray=ray, rbx=rbx, rby=rby,
         base_separation=base,
@@ -132,7 +134,7 @@ def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose
     move = stored(token, per_body, pose, pose0)
 
     def moved_anchor(i, rx, ry):
-        dx, dy, cos, sin = (m[:, None] for m in move[:, i])
+        dx, dy, cos, sin = (m[:, None] for m in take_rows(move, i, axis=1))
         qx, qy = rotate(cos, sin, rx, ry)
         return dx + qx, dy + qy
 
@@ -166,7 +168,7 @@ def pack_rows(layout: ContactLayout, rows) -> jax.Array:
     C, K = layout.num_colours, layout.per_colour
     stacked = jnp.stack(rows).astype(jnp.float32)
     if layout.walls_repeat:
-        stacked = stacked[:, layout.solve_slots]
+        stacked = take_rows(stacked, layout.solve_slots, axis=1)
     return jnp.swapaxes(stacked.reshape((len(rows), C, K) + stacked.shape[2:]), 0, 1)
 
 
@@ -174,7 +176,7 @@ def unpack_rows(layout: ContactLayout, packed) -> jax.Array:
     """(C, F, K, *batch), solve order -> (F, S, *batch), slot order."""
     C, F, K = packed.shape[:3]
     rows = jnp.swapaxes(packed, 0, 1).reshape((F, C * K) + packed.shape[3:])
-    return rows[:, layout.slot_order] if layout.walls_repeat else rows
+    return take_rows(rows, layout.slot_order, axis=1) if layout.walls_repeat else rows
 
 
 def _push_rows(cc: ContactConstraints, k: int, dx, dy) -> list:
@@ -281,11 +283,21 @@ def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan:
     sides, write_back = jnp.asarray(layout.solve_sides), jnp.asarray(layout.write_back)
     stacked = jnp.stack(vel)  # (3, M, *batch)
     batch = stacked.shape[2:]
+    if sides.ndim == 3:  # (C, 2K, B): each scene its own sides (broad_phase); flat indices into (3, M * B)
+        B = batch[0]
+        scene = jnp.arange(B, dtype=jnp.int32)
+        sides, write_back = sides * B + scene, write_back * B + scene
+
+        def gather(v, idx):  # v (3, N, B), idx (n, B) flat -> (3, n, B)
+            return v.reshape(3, -1).at[:, idx.reshape(-1)].get(mode="promise_in_bounds").reshape((3,) + idx.shape)
+    else:
+        def gather(v, idx):
+            return v[:, idx]
 
     def colour(v, lam, c):
-        vels = v[:, at(sides, c)].reshape((6, K) + batch)
+        vels = gather(v, at(sides, c)).reshape((6, K) + batch)
         vels, lam = solve_colour(vels, lam, at(plan.points, c), _Block(const, c), *(_Rows(x, c) for x in inputs))
-        return jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1)[:, at(write_back, c)], lam
+        return gather(jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1), at(write_back, c)), lam
 
     def body(i, carry):
         v, out = carry

@@ -115,3 +115,29 @@ def soft(hertz, damping_ratio, h) -> Softness:
     a2 = h * omega * a1
     a3 = 1.0 / (1.0 + a2)
     return Softness(omega / a1, a2 * a3, a3)
+
+
+def take_rows(x, idx, axis: int = 0, fill=None):
+    """x's entries idx along `axis`. idx (n,): the same entries in every scene (plain indexing). idx (n, B):
+    each scene its own, for a batch-last x (..., B) (the broad phase's per-scene candidates; step.py).
+
+    Per scene, the axis and the batch are flattened into one axis of N * B and gathered at idx * B + scene,
+    so no scene's index reaches another scene's data. fill: the value at out-of-range indices (None: every
+    index is in range).
+    """
+    if jnp.ndim(idx) == 1:  # as given: a numpy index stays a compile-time constant, as in plain indexing
+        if fill is None:
+            return x[(slice(None),) * (axis % x.ndim) + (idx,)]
+        return jnp.take(x, idx, axis=axis, mode="fill", fill_value=fill)
+    axis = axis % x.ndim
+    if axis != x.ndim - 2:  # bring the axis next to the batch, where the flat gather needs no transpose
+        return jnp.moveaxis(take_rows(jnp.moveaxis(x, axis, -2), idx, -2, fill), -2, axis)
+    N, B = x.shape[-2:]
+    idx = jnp.asarray(idx)
+    flat = x.reshape(x.shape[:-2] + (N * B,))
+    i = (jnp.minimum(idx, N) * B + jnp.arange(B, dtype=idx.dtype)).reshape(-1)
+    if fill is None:
+        out = flat.at[..., i].get(mode="promise_in_bounds")
+    else:
+        out = jnp.take(flat, i, axis=-1, mode="fill", fill_value=fill)
+    return out.reshape(x.shape[:-2] + idx.shape)

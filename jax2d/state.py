@@ -209,9 +209,8 @@ class SolverConfig:
     # after the other, so each part's constraint data stays in the CPU's cache (step.step_batch).
     chunk: int = 256
     # Big scenes: a broad phase picks the pairs whose bounding boxes overlap, and only those are
-    # collided and solved, coloured in the step (jax2d.broad_phase). None: on for scenes of more than
-    # broad_phase.AUTO_BODIES bodies, and for single scenes of more than AUTO_SINGLE_BODIES (the xl
-    # class at batch 1); True / False force it.
+    # collided and solved, coloured per scene in the step (jax2d.broad_phase). None: on for scenes of
+    # more than broad_phase.AUTO_BODIES bodies (the xl class), at any batch; True / False force it.
     broad_phase: bool | None = None
 
     def __post_init__(self):

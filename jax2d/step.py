@@ -35,7 +35,7 @@ from jax.custom_batching import custom_vmap
 from jax2d import broad_phase, compiling, contact_solver, joint_solver
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.compact import Compact, unpack, update
-from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft
+from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft, take_rows
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
 from jax2d.restitution import restitution
 from jax2d.state import COLLIDE_ALL, Bodies, Contacts, Joints, SimParams, SimState, SolverConfig, Thrusters
@@ -117,7 +117,7 @@ def _step_in_parts(states: SimState, params: SimParams, motor_actions, thruster_
 def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_actions, config: SolverConfig):
     """step_batch on one part of the batch (params already per scene)."""
     layout = contact_layout(states.num_polygons, states.num_circles, config.num_static)
-    if broad_phase.uses_broad_phase(config.broad_phase, layout.num_bodies, states.bodies.active.shape[0]):
+    if broad_phase.uses_broad_phase(config.broad_phase, layout.num_bodies):
         return _step_chunk_broad(layout, states, params, motor_actions, thruster_actions, config)
     M = layout.num_padded
     # The joint closure runs per scene; from there on every array is batch-last.
@@ -161,7 +161,7 @@ def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams
     last = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, 0, -1))
     first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
     scene = last(states)
-    rows, colours, width = broad_phase.rows_for(layout, B)
+    rows, colours, width = broad_phase.rows_for(layout)
     total = colours * width
     may_collide = pair_filter(layout, scene.bodies, jnp.zeros((S, B), bool), M)
     reach = step_reach(scene, params.dt)
@@ -171,19 +171,21 @@ def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams
     # The joint closure only where some scene has a joint: (M, M) matrix products are costly at M ~ 200.
     jointed = jax.lax.cond(
         jnp.any(states.joints.active),
-        lambda: jax.vmap(lambda j: joint_connected(j, M)[cand.slot_a, cand.slot_b])(states.joints),
+        lambda: jax.vmap(lambda j, a, b: joint_connected(j, M)[a, b])(states.joints, cand.slot_a.T, cand.slot_b.T),
         lambda: jnp.zeros((B, total), bool))
-    contacts = jax.tree.map(lambda x: jnp.take(x, cand.slot, axis=0, mode="fill", fill_value=0), scene.contacts)
-    contacts = dataclasses.replace(contacts, key=jnp.where(cand.slot[:, None, None] < S, contacts.key, -1))
+    # Each scene's old contacts of its candidates (padding rows: slot S, out of range, filled with 0).
+    contacts = jax.tree.map(lambda x: take_rows(x, cand.slot, fill=0), scene.contacts)
+    contacts = dataclasses.replace(contacts, key=jnp.where(cand.slot[:, None] < S, contacts.key, -1))
     scene = dataclasses.replace(scene, contacts=contacts)
     loop, valid, solved = _prepare(cand, scene, params, last(motor_actions), last(thruster_actions), manifold,
                                    last(jointed), config)
     pose, vel, cimp, jimp = _solve(solved, loop, config)
+    cimp = contact_solver.unpack_impulses(solved, cimp)  # per-scene solve order: unpacked batch-last
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
-    cimp = jax.vmap(functools.partial(contact_solver.unpack_impulses, solved))(cimp)
 
-    def to_slots(x, fill):  # (B, L, 2) candidate rows -> (B, S, 2) slots; padding rows are dropped
-        return jnp.full((B, S) + x.shape[2:], fill, x.dtype).at[:, cand.slot].set(x, mode="drop")
+    def to_slots(x, fill):  # (B, L, 2) candidate rows -> (B, S, 2) slots, by each scene's slots; padding dropped
+        return jax.vmap(lambda x, slot: jnp.full((S,) + x.shape[1:], fill, x.dtype).at[slot].set(x, mode="drop"))(
+            x, cand.slot.T)
 
     manifold = Manifold(None, None, to_slots(manifold.separation, 0.0), to_slots(manifold.key, -1),
                         to_slots(manifold.valid, False))
@@ -266,12 +268,12 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
     valid = manifold.valid & enabled[:, None]
     if isinstance(layout, broad_phase.Candidates):
         # Colour the pairs that hold a point in some scene; bodies static in every scene may repeat.
-        live = jnp.any(valid.reshape(valid.shape[0], -1), axis=1)
-        shareable = jnp.all(dyn.reshape(M, -1) == 0.0, axis=1)
+        live = jnp.any(valid, axis=1)  # (L, B)
+        shareable = dyn == 0.0  # (M, B)
         rows = layout.slot.shape[0]
         layout, placed = broad_phase.colour(layout, live, shareable, M, broad_phase.MAX_COLOURS,
                                             rows // broad_phase.MAX_COLOURS)
-        valid = valid & placed.reshape((-1, 1) + (1,) * (valid.ndim - 2))
+        valid = valid & placed[:, None]  # (L, 2, B) & (L, 1, B)
     cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
                                 _pad(b.friction, M), _pad(b.restitution, M), state.gravity, h)
     cimp = contact_solver.pack_impulses(layout, _matched_impulses(state.contacts, manifold.key, valid,
@@ -410,13 +412,16 @@ def _over_pairs_and_batch(collide, n: int, batch: tuple):
 
 def pair_filter(layout: ContactLayout, b: Bodies, jointed, M: int):
     """(S, *batch) whether each slot's bodies may collide: active, not both static, modes agree, not jointed."""
-    a, c = layout.slot_a, layout.slot_b
+    a, c = layout.slot_a, layout.slot_b  # (S,), or (S, B): each scene's own pairs (broad_phase)
+    ta, tc = functools.partial(take_rows, idx=a), functools.partial(take_rows, idx=c)
     active = _pad(b.active, M)
     moving = _pad(b.active & (b.inv_mass > 0), M)
     mode = _pad(b.collision_mode, M)
-    modes_agree = (mode[a] == COLLIDE_ALL) | (mode[c] == COLLIDE_ALL) | ((mode[a] > 0) & (mode[c] > 0))
-    real = (layout.slot_kind != PADDING).reshape((-1,) + (1,) * (active.ndim - 1))
-    return real & active[a] & active[c] & (moving[a] | moving[c]) & modes_agree & ~jointed
+    modes_agree = (ta(mode) == COLLIDE_ALL) | (tc(mode) == COLLIDE_ALL) | ((ta(mode) > 0) & (tc(mode) > 0))
+    real = layout.slot_kind != PADDING
+    if real.ndim == 1:
+        real = real.reshape((-1,) + (1,) * (active.ndim - 1))
+    return real & ta(active) & tc(active) & (ta(moving) | tc(moving)) & modes_agree & ~jointed
 
 
 def joint_connected(joints: Joints, M: int):

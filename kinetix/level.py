@@ -74,9 +74,8 @@ SIZES: dict[str, SizeClass] = {
     "s": SizeClass("s", polygons=5, circles=2, joints=1, thrusters=1),
     "m": SizeClass("m", polygons=6, circles=3, joints=2, thrusters=2),
     "l": SizeClass("l", polygons=12, circles=4, joints=6, thrusters=2),
-    # Levels bigger than l (issue 28): about five times l. One xl scene at a time (the browser, Python
-    # loops) collides only close pairs (jax2d.broad_phase, above AUTO_SINGLE_BODIES bodies); batches of
-    # xl scenes check every pair (docs/engine.md).
+    # Levels bigger than l (issue 28): about five times l. xl scenes collide only close pairs, at any
+    # batch size (jax2d.broad_phase, above AUTO_BODIES bodies; docs/engine.md).
     "xl": SizeClass("xl", polygons=64, circles=16, joints=24, thrusters=8),
 }
 

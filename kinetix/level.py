@@ -29,7 +29,8 @@ NUM_MOTOR_BINDINGS = 4
 NUM_THRUSTER_BINDINGS = 2
 
 
-# Upper bound on capacities: the engine checks every pair of bodies, so cost grows with the square.
+# Upper bound on capacities: the state keeps a contact slot for every pair of bodies (and scenes up to 40
+# bodies check every pair in each step), so memory grows with the square.
 MAX_BODIES = 256
 MAX_JOINTS = MAX_THRUSTERS = 256
 

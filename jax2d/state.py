@@ -213,6 +213,9 @@ class SolverConfig:
     # broad_phase.AUTO_BODIES bodies, and for single scenes of more than AUTO_SINGLE_BODIES (the xl
     # class at batch 1); True / False force it.
     broad_phase: bool | None = None
+    # The static-walls stages after the joint projection (jax2d/static_walls.py): fast bodies swept back to
+    # where they enter a static body, and bodies pushed out of static ones. False skips both (to measure them).
+    static_walls: bool = True
 
     def __post_init__(self):
         if self.joint_position_projection is not None and self.joint_projection is None:

@@ -149,9 +149,10 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
                                           joints, config.joint_position_projection)
         if shift is not None:
             pose = Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)
-    # Nothing gets into or through a static body (static_walls): continuous collision, then the push-out.
-    pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, _linked)
-    pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, loop.pose0, loop.linear_slop)
+    if config.static_walls:  # nothing gets into or through a static body: continuous collision, then the push-out
+        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, _linked)
+        pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, loop.pose0,
+                                     loop.linear_slop)
     return pose, vel, cimp, jimp
 
 

@@ -143,16 +143,19 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
                             jnp.int32(config.substeps))
     vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, gap, loop.h, loop.restitution_threshold,
                             colours, config.impact_sweeps, config.bounce_sweeps)
-    if config.joint_projection is not None:
+    def rejoin(pose, vel):  # the joint projection: velocities, and positions when configured
+        if config.joint_projection is None:
+            return pose, vel
         frame = joint_solver.frame(loop.joints, loop.jc, pose)
         vel, shift = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h),
                                           joints, config.joint_position_projection)
-        if shift is not None:
-            pose = Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)
+        return (pose if shift is None else Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)), vel
+
+    pose, vel = rejoin(pose, vel)
     if config.static_walls:  # nothing gets into or through a static body: continuous collision, then the push-out
         pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, _linked)
-        pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, loop.pose0,
-                                     loop.linear_slop)
+        pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, vel, loop.pose0,
+                                     loop.linear_slop, rejoin)
     return pose, vel, cimp, jimp
 
 

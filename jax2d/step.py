@@ -10,6 +10,8 @@
         relax                   joints then contacts, without bias (removes bias energy)
     restitution             impacts propagated through touching chains, then bounces (restitution.py)
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
+    static walls            fast bodies swept back to where they enter a static body; bodies pushed out of
+                            static ones beyond 2 slops, alternating with the projection (static_walls.py)
     store                   impulses for the next step; clamp and NaN guard (SimState.frozen counts the
                             bodies it froze)
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jax2d
+from jax2d.state import COLLIDE_ONLY_ALL
 from tests.jax2d import accuracy
 
 
@@ -55,6 +56,13 @@ def test_a_ball_sent_off_by_a_heavy_box_does_not_tunnel_through_a_thin_wall(spee
     result = accuracy.speed_up_tunnel(speed)
     print(f"\n[tunnel after a speed-up, box at {speed} m/s] {result['tunnelled']} of {result['tries']} passed the wall")
     assert result["tunnelled"] == 0
+
+
+def test_the_sweep_back_leaves_a_ball_that_ignores_the_wall_alone():
+    """The same shot at 60 m/s with a ball whose collision mode ignores the wall: continuous collision respects
+    the pair filter, so every ball passes."""
+    result = accuracy.speed_up_tunnel(60.0, ball_mode=COLLIDE_ONLY_ALL)
+    assert result["tunnelled"] == result["tries"]
 
 
 @pytest.mark.slow

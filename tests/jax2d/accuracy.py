@@ -125,7 +125,8 @@ def speed_up_tunnel(speed: float, tries: int = 5, gap: float = 0.25, thickness: 
         state, ball = scene.add_circle(state, (-gap - radius, 0.0), radius, density=0.1, restitution=restitution,
                                      collision_mode=ball_mode)
         start = -gap - 2 * radius - 0.15 - 0.05 - travel * (k + 0.5) / tries
-        state, _ = scene.add_rectangle(state, (start, 0.0), 0.3, 0.3, density=10.0, velocity=(speed, 0.0))
+        state, _ = scene.add_rectangle(state, (start, 0.0), 0.3, 0.3, density=10.0, velocity=(speed, 0.0),
+                                     collision_mode=COLLIDE_ALL)  # it hits the ball in every mode
         _, rec = rollout(state, PARAMS, scenes.CHUNK)  # 1 s
         through.append(bool(np.any(rec["position"][:, ball, 0] > thickness + radius)))
     return dict(tunnelled=int(sum(through)), tries=tries)

@@ -212,6 +212,9 @@ class SolverConfig:
     # collided and solved, coloured per scene in the step (jax2d.broad_phase). None: on for scenes of
     # more than broad_phase.AUTO_BODIES bodies (the xl class), at any batch; True / False force it.
     broad_phase: bool | None = None
+    # The static-walls stages after the joint projection (jax2d/static_walls.py): fast bodies swept back to
+    # where they enter a static body, and bodies pushed out of static ones. False skips both (to measure them).
+    static_walls: bool = True
 
     def __post_init__(self):
         if self.joint_position_projection is not None and self.joint_projection is None:

@@ -10,6 +10,8 @@
         relax                   joints then contacts, without bias (removes bias energy)
     restitution             impacts propagated through touching chains, then bounces (restitution.py)
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
+    static walls            fast bodies swept back to where they enter a static body; bodies pushed out of
+                            static ones beyond 2 slops, alternating with the projection (static_walls.py)
     store                   impulses for the next step; clamp and NaN guard (SimState.frozen counts the
                             bodies it froze)
 
@@ -32,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
-from jax2d import broad_phase, compiling, contact_solver, joint_solver
+from jax2d import broad_phase, compiling, contact_solver, joint_solver, static_walls
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.compact import Compact, unpack, update
 from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft, take_rows
@@ -143,13 +145,28 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
                             jnp.int32(config.substeps))
     vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, gap, loop.h, loop.restitution_threshold,
                             colours, config.impact_sweeps, config.bounce_sweeps)
-    if config.joint_projection is not None:
+    def rejoin(pose, vel):  # the joint projection: velocities, and positions when configured
+        if config.joint_projection is None:
+            return pose, vel
         frame = joint_solver.frame(loop.joints, loop.jc, pose)
         vel, shift = joint_solver.project(loop.jc, frame, vel, config.joint_projection / (config.substeps * loop.h),
                                           joints, config.joint_position_projection)
-        if shift is not None:
-            pose = Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)
+        return (pose if shift is None else Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)), vel
+
+    pose, vel = rejoin(pose, vel)
+    if config.static_walls:  # nothing gets into or through a static body: continuous collision, then the push-out
+        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, _linked)
+        pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, vel, loop.pose0,
+                                     loop.linear_slop, rejoin)
     return pose, vel, cimp, jimp
+
+
+def _linked(joints: Joints, M: int):
+    """(M, M, *batch) joint_connected for batch-last joints (every leaf's last axes are the batch)."""
+    per_scene = functools.partial(joint_connected, M=M)
+    for _ in range(joints.a.ndim - 1):
+        per_scene = jax.vmap(per_scene, in_axes=-1, out_axes=-1)
+    return per_scene(joints)
 
 
 def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams, motor_actions, thruster_actions,
@@ -239,6 +256,8 @@ class LoopData(NamedTuple):
     joint_softness: Softness
     max_push_velocity: jax.Array
     restitution_threshold: jax.Array
+    linear_slop: jax.Array
+    walls: static_walls.Shapes  # for the sweep back
 
 
 def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_actions, thruster_actions,
@@ -291,6 +310,8 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
         joint_softness=soft(params.joint_hertz, params.joint_damping_ratio, h),
         max_push_velocity=jnp.asarray(params.max_push_velocity, jnp.float32),
         restitution_threshold=jnp.asarray(params.restitution_threshold, jnp.float32),
+        linear_slop=jnp.asarray(params.linear_slop, jnp.float32),
+        walls=static_walls.shapes(b, step_reach(state, params.dt), params.speculative_distance, M),
     )
     return loop, valid, layout
 

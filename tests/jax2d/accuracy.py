@@ -29,7 +29,7 @@ import numpy as np
 
 import jax2d
 from jax2d import scene
-from jax2d.state import COLLIDE_ALL
+from jax2d.state import COLLIDE_ALL, COLLIDE_NORMAL
 from jax2d.step import joint_connected
 from tests.jax2d import scenes
 from tests.jax2d.scenes import rollout
@@ -107,6 +107,31 @@ def tunnel(speed: float, tries: int = 5, diameter: float = 0.1, thickness: float
     return dict(tunnelled=int(sum(through)), tries=tries)
 
 
+def speed_up_tunnel(speed: float, tries: int = 5, gap: float = 0.25, thickness: float = 0.03,
+                    restitution: float = 0.0, ball_mode: int = COLLIDE_NORMAL) -> dict:
+    """A light 0.1 m ball at rest `gap` in front of a thin static wall (its near face at x = 0), hit from behind
+    by a heavy 0.3 m box at `speed`, no gravity: how many of `tries` balls end behind the wall.
+
+    The ball is at rest when its step starts, so the speculative margin (step.step_reach) gives it no contact
+    with the wall; the box's hit inside the step sends it off at up to 2x the box's speed. The tries start the
+    box at every phase of a step's travel. ball_mode: the ball's collision mode (COLLIDE_ONLY_ALL: it ignores the
+    wall, and passes)."""
+    radius = 0.05
+    travel = speed * DT
+    through = []
+    for k in range(tries):
+        state = _empty(gravity=(0.0, 0.0))
+        state, _ = scene.add_rectangle(state, (thickness / 2, 0.0), thickness, 2.0, fixed=True)
+        state, ball = scene.add_circle(state, (-gap - radius, 0.0), radius, density=0.1, restitution=restitution,
+                                     collision_mode=ball_mode)
+        start = -gap - 2 * radius - 0.15 - 0.05 - travel * (k + 0.5) / tries
+        state, _ = scene.add_rectangle(state, (start, 0.0), 0.3, 0.3, density=10.0, velocity=(speed, 0.0),
+                                     collision_mode=COLLIDE_ALL)  # it hits the ball in every mode
+        _, rec = rollout(state, PARAMS, scenes.CHUNK)  # 1 s
+        through.append(bool(np.any(rec["position"][:, ball, 0] > thickness + radius)))
+    return dict(tunnelled=int(sum(through)), tries=tries)
+
+
 # ---------------------------------------------------------------- walls against motors
 
 
@@ -172,6 +197,9 @@ def main() -> None:
     print("mass ratio 100:1", mass_ratio())
     for speed in (10.0, 30.0, 60.0, 100.0):
         print(f"tunnel {speed} m/s", tunnel(speed))
+    for speed in (30.0, 60.0):
+        for e in (0.0, 1.0):
+            print(f"tunnel after a speed-up, box at {speed} m/s, ball e={e}", speed_up_tunnel(speed, restitution=e))
     print("crowded walls 64 x 2000", crowded_walls())
 
 

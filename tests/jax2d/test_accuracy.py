@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jax2d
+from jax2d.state import COLLIDE_ONLY_ALL
 from tests.jax2d import accuracy
 
 
@@ -46,6 +47,22 @@ def test_a_fast_small_ball_does_not_tunnel_through_a_thin_wall(speed):
     result = accuracy.tunnel(speed)
     print(f"\n[tunnel {speed} m/s] {result['tunnelled']} of {result['tries']} passed the wall")
     assert result["tunnelled"] == 0
+
+
+@pytest.mark.parametrize("speed", [45.0, 60.0])
+def test_a_ball_sent_off_by_a_heavy_box_does_not_tunnel_through_a_thin_wall(speed):
+    """A light ball at rest 0.25 m before a 3 cm static wall, hit by a heavy box at `speed` (before the sweep
+    back: 3 of 5 passed at 45 and at 60 m/s; the margin from the ball's step-start velocity is 0)."""
+    result = accuracy.speed_up_tunnel(speed)
+    print(f"\n[tunnel after a speed-up, box at {speed} m/s] {result['tunnelled']} of {result['tries']} passed the wall")
+    assert result["tunnelled"] == 0
+
+
+def test_the_sweep_back_leaves_a_ball_that_ignores_the_wall_alone():
+    """The same shot at 60 m/s with a ball whose collision mode ignores the wall: continuous collision respects
+    the pair filter, so every ball passes."""
+    result = accuracy.speed_up_tunnel(60.0, ball_mode=COLLIDE_ONLY_ALL)
+    assert result["tunnelled"] == result["tries"]
 
 
 @pytest.mark.slow

@@ -18,7 +18,20 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jax2d.math2d import Pose, Softness, Vel, at, cross, rotate, safe_inverse, set_at, stored, take_rows
+from jax2d.math2d import (
+    Pose,
+    Softness,
+    Vel,
+    at,
+    cross,
+    gather_scene_rows,
+    rotate,
+    safe_inverse,
+    scene_rows,
+    set_at,
+    stored,
+    take_rows,
+)
 from jax2d.pairs import ContactLayout
 
 
@@ -284,12 +297,8 @@ def _sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan:
     stacked = jnp.stack(vel)  # (3, M, *batch)
     batch = stacked.shape[2:]
     if sides.ndim == 3:  # (C, 2K, B): each scene its own sides (broad_phase); flat indices into (3, M * B)
-        B = batch[0]
-        scene = jnp.arange(B, dtype=jnp.int32)
-        sides, write_back = sides * B + scene, write_back * B + scene
-
-        def gather(v, idx):  # v (3, N, B), idx (n, B) flat -> (3, n, B)
-            return v.reshape(3, -1).at[:, idx.reshape(-1)].get(mode="promise_in_bounds").reshape((3,) + idx.shape)
+        sides, write_back = scene_rows(sides, batch[0]), scene_rows(write_back, batch[0])
+        gather = gather_scene_rows
     else:
         def gather(v, idx):
             return v[:, idx]

@@ -133,11 +133,19 @@ def take_rows(x, idx, axis: int = 0, fill=None):
     if axis != x.ndim - 2:  # bring the axis next to the batch, where the flat gather needs no transpose
         return jnp.moveaxis(take_rows(jnp.moveaxis(x, axis, -2), idx, -2, fill), -2, axis)
     N, B = x.shape[-2:]
-    idx = jnp.asarray(idx)
-    flat = x.reshape(x.shape[:-2] + (N * B,))
-    i = (jnp.minimum(idx, N) * B + jnp.arange(B, dtype=idx.dtype)).reshape(-1)
+    flat = scene_rows(jnp.minimum(jnp.asarray(idx), N), B)
     if fill is None:
-        out = flat.at[..., i].get(mode="promise_in_bounds")
-    else:
-        out = jnp.take(flat, i, axis=-1, mode="fill", fill_value=fill)
-    return out.reshape(x.shape[:-2] + idx.shape)
+        return gather_scene_rows(x, flat)
+    out = jnp.take(x.reshape(x.shape[:-2] + (N * B,)), flat.reshape(-1), axis=-1, mode="fill", fill_value=fill)
+    return out.reshape(x.shape[:-2] + flat.shape)
+
+
+def scene_rows(idx, B: int):
+    """(..., B) per-scene row indices idx -> indices into the flattened (N * B) axis of a batch-last array."""
+    return idx * B + jnp.arange(B, dtype=idx.dtype)
+
+
+def gather_scene_rows(x, flat):
+    """x (..., N, B) at flat indices (..., B) from scene_rows, every index in range -> (...,) + flat.shape."""
+    out = x.reshape(x.shape[:-2] + (-1,)).at[..., flat.reshape(-1)].get(mode="promise_in_bounds")
+    return out.reshape(x.shape[:-2] + flat.shape)

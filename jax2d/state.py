@@ -26,6 +26,12 @@ COLLIDE_ONLY_ALL = 0  # touches only bodies whose mode is COLLIDE_ALL (walls)
 COLLIDE_NORMAL = 1
 COLLIDE_ALL = 2
 
+
+def modes_agree(mode_a, mode_b):
+    """Whether bodies of these collision modes collide (the rule above), elementwise."""
+    either_all = (mode_a == COLLIDE_ALL) | (mode_b == COLLIDE_ALL)
+    return either_all | ((mode_a > COLLIDE_ONLY_ALL) & (mode_b > COLLIDE_ONLY_ALL))
+
 # Columns of Joints.impulse, the accumulated impulses kept for warm starting.
 J_LINEAR_X, J_LINEAR_Y, J_ANGULAR, J_MOTOR, J_LOWER, J_UPPER = range(6)
 JOINT_IMPULSE_SIZE = 6

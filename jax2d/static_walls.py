@@ -30,7 +30,7 @@ from jax2d import contact_solver
 from jax2d.contact_solver import _Block, _Rows, _sweep, _velocity_along
 from jax2d.math2d import Pose, Vel
 from jax2d.pairs import ContactLayout
-from jax2d.state import COLLIDE_ALL, Bodies, Joints
+from jax2d.state import Bodies, Joints, modes_agree
 
 # Continuous collision sweeps a disc of this fraction of a body's inner radius (a circle's radius, a polygon's
 # smallest centre-to-edge distance): a body resting on a wall, or overlapping it by a few slops, keeps its core
@@ -66,7 +66,6 @@ class Shapes(NamedTuple):
 
 def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
     """Shapes from batch-last bodies; reach: (N, *batch) step.step_reach; speculative: (*batch)."""
-    P = b.vertices.shape[0]
     v = b.vertices  # (P, V, 2, *batch)
     V = v.shape[1]
     nxt = _next_vertex(v, b.n_vertices)
@@ -79,7 +78,6 @@ def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
     dynamic = b.active & (b.inv_mass > 0)
     pad = [(0, M - b.active.shape[0])] + [(0, 0)] * (b.active.ndim - 1)
     core = jnp.pad(jnp.where(dynamic, CORE_FRACTION * jnp.maximum(inner, 0.0), 0.0), pad)
-    del P
     return Shapes(v, b.n_vertices, b.radius, b.collision_mode, b.active & (b.inv_mass == 0),
                   core, jnp.pad(reach + speculative, pad))
 
@@ -116,9 +114,8 @@ def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, linked) -> Po
         M = pose.x.shape[0]
         mode = jnp.pad(s.collision_mode, [(0, M - N)] + [(0, 0)] * (s.collision_mode.ndim - 1))
         static = jnp.pad(s.static, [(0, M - N)] + [(0, 0)] * (s.static.ndim - 1))
-        agree = (mode[:, None] == COLLIDE_ALL) | (mode[None, :] == COLLIDE_ALL) | ((mode[:, None] > 0)
-                                                                                 & (mode[None, :] > 0))
-        may = agree & ~linked(joints, M) & static[None, :] & fast[:, None]  # (M body, M wall, *batch)
+        # (M body, M wall, *batch)
+        may = modes_agree(mode[:, None], mode[None, :]) & ~linked(joints, M) & static[None, :] & fast[:, None]
         x0, y0 = pose0.x[:, None], pose0.y[:, None]  # (M, 1, *batch)
         r = s.core[:, None]
         t = jnp.ones_like(pose.x)

@@ -40,7 +40,7 @@ from jax2d.compact import Compact, unpack, update
 from jax2d.math2d import Pose, Softness, Vel, one_hot_rows, pick_rows, rotate, soft, take_rows
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
 from jax2d.restitution import restitution
-from jax2d.state import COLLIDE_ALL, Bodies, Contacts, Joints, SimParams, SimState, SolverConfig, Thrusters
+from jax2d.state import Bodies, Contacts, Joints, SimParams, SimState, SolverConfig, Thrusters, modes_agree
 
 DEFAULT_CONFIG = SolverConfig()
 
@@ -126,9 +126,10 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     jointed = jax.vmap(lambda j: joint_connected(j, M)[layout.slot_a, layout.slot_b])(states.joints)
     last = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, 0, -1))
     scene = last(states)
-    manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, step_reach(scene, params.dt))
+    reach = step_reach(scene, params.dt)
+    manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, reach)
     loop, valid, _ = _prepare(layout, scene, params, last(motor_actions), last(thruster_actions), manifold,
-                              last(jointed), config)
+                              last(jointed), reach, config)
     pose, vel, cimp, jimp = _solve(layout, loop, config)
     first = functools.partial(jax.tree.map, lambda x: jnp.moveaxis(x, -1, 0))
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
@@ -195,7 +196,7 @@ def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams
     contacts = dataclasses.replace(contacts, key=jnp.where(cand.slot[:, None] < S, contacts.key, -1))
     scene = dataclasses.replace(scene, contacts=contacts)
     loop, valid, solved = _prepare(cand, scene, params, last(motor_actions), last(thruster_actions), manifold,
-                                   last(jointed), config)
+                                   last(jointed), reach, config)
     pose, vel, cimp, jimp = _solve(solved, loop, config)
     cimp = contact_solver.unpack_impulses(solved, cimp)  # per-scene solve order: unpacked batch-last
     pose, vel, cimp, jimp, manifold, valid, dyn = first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
@@ -261,15 +262,16 @@ class LoopData(NamedTuple):
 
 
 def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_actions, thruster_actions,
-             manifold: Manifold, jointed, config: SolverConfig) -> tuple[LoopData, jax.Array, ContactLayout]:
+             manifold: Manifold, jointed, reach, config: SolverConfig) -> tuple[LoopData, jax.Array, ContactLayout]:
     """Constraint preparation from the pose at the start of the step, on batch-last arrays.
 
     Every leaf has the batch as its last axis: per body (N, *batch), per slot (S, *batch),
     params (*batch). Run batch-major under vmap, this stage gathered a few floats per row and
     then transposed every constraint array for the substeps; batch-last, each gather by a
     constant slot index is one contiguous row. jointed: (S, *batch) slots whose bodies a chain
-    of joints connects. Returns the loop data, (S, 2, *batch) which points are valid and the
-    layout the solver uses (for broad_phase.Candidates, a broad_phase.DynamicLayout coloured here).
+    of joints connects; reach: (N, *batch) step_reach, as the narrow phase used it. Returns the loop
+    data, (S, 2, *batch) which points are valid and the layout the solver uses (for
+    broad_phase.Candidates, a broad_phase.DynamicLayout coloured here).
     """
     M = layout.num_padded
     b = state.bodies
@@ -311,7 +313,7 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
         max_push_velocity=jnp.asarray(params.max_push_velocity, jnp.float32),
         restitution_threshold=jnp.asarray(params.restitution_threshold, jnp.float32),
         linear_slop=jnp.asarray(params.linear_slop, jnp.float32),
-        walls=static_walls.shapes(b, step_reach(state, params.dt), params.speculative_distance, M),
+        walls=static_walls.shapes(b, reach, params.speculative_distance, M),
     )
     return loop, valid, layout
 
@@ -438,11 +440,10 @@ def pair_filter(layout: ContactLayout, b: Bodies, jointed, M: int):
     active = _pad(b.active, M)
     moving = _pad(b.active & (b.inv_mass > 0), M)
     mode = _pad(b.collision_mode, M)
-    modes_agree = (ta(mode) == COLLIDE_ALL) | (tc(mode) == COLLIDE_ALL) | ((ta(mode) > 0) & (tc(mode) > 0))
     real = layout.slot_kind != PADDING
     if real.ndim == 1:
         real = real.reshape((-1,) + (1,) * (active.ndim - 1))
-    return real & ta(active) & tc(active) & (ta(moving) | tc(moving)) & modes_agree & ~jointed
+    return real & ta(active) & tc(active) & (ta(moving) | tc(moving)) & modes_agree(ta(mode), tc(mode)) & ~jointed
 
 
 def joint_connected(joints: Joints, M: int):

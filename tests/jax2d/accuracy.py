@@ -29,7 +29,7 @@ import numpy as np
 
 import jax2d
 from jax2d import scene
-from jax2d.state import COLLIDE_ALL, COLLIDE_NORMAL
+from jax2d.state import COLLIDE_ALL, COLLIDE_NORMAL, modes_agree
 from jax2d.step import joint_connected
 from tests.jax2d import scenes
 from tests.jax2d.scenes import rollout
@@ -157,8 +157,7 @@ def _inside_static(state: jax2d.SimState) -> jax.Array:
     inside = jnp.all((cross > 0) | ~used, axis=-1)  # (P, N)
     dynamic = b.active & (b.inv_mass > 0)
     mode = b.collision_mode
-    collide = (mode[:P, None] == COLLIDE_ALL) | (mode[None, :] == COLLIDE_ALL) \
-        | ((mode[:P, None] > 0) & (mode[None, :] > 0))
+    collide = modes_agree(mode[:P, None], mode[None, :])
     linked = joint_connected(state.joints, b.active.shape[0])[:P]
     return jnp.any(inside & static[:, None] & collide & ~linked, axis=0) & dynamic
 

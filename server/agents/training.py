@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 
 WORKER_NICE = 5  # training yields the CPU to the play loop
 POLL_S = 0.2  # how often a supervisor checks its worker when no message comes
+SETTLE_S = 40.0  # close() waits this long for a supervisor (it joins its worker for up to 30 s, then kills it)
 DEFAULT_MAX_QUEUED = 8  # runs waiting in all (beyond that a submit is refused: "the queue is full")
 DEFAULT_PER_CLIENT = 1  # runs of one client running at once
 DEFAULT_PER_CLIENT_WAITING = 1  # runs of one client waiting at once
@@ -226,6 +227,9 @@ class TrainingPool:
         for job in jobs:
             self.cancel(job)
         for job in jobs:
+            # A job turns "running" before its process starts (_start_next starts it outside the lock), so a
+            # cancel can come first; its supervisor then terminates and joins the process, and settles the job.
+            job.settled.wait(timeout=SETTLE_S)
             if job.process is not None:
                 job.process.join(timeout=10)
 

@@ -39,11 +39,15 @@ def _parts(batch: int) -> int:
 
 
 def _split(tree: Any, count: int) -> Any:
-    return jax.tree.map(lambda x: x.reshape((count, x.shape[0] // count) + x.shape[1:]), tree)
+    """(B, ...) -> (count, B / count, ...) with part c holding rows c, c + count, c + 2 count, ...: when the batch axis
+    is split over devices (kinetix.agents.sharding), every part is then split the same way, and the loop over the
+    parts needs no data from another device."""
+    return jax.tree.map(lambda x: jnp.moveaxis(x.reshape((x.shape[0] // count, count) + x.shape[1:]), 1, 0), tree)
 
 
 def _join(tree: Any) -> Any:
-    return jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), tree)
+    """The inverse of _split."""
+    return jax.tree.map(lambda x: jnp.moveaxis(x, 0, 1).reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), tree)
 
 
 def by_platform(cpu: Callable, whole: Callable, *args: Any) -> Any:

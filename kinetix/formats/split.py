@@ -28,7 +28,13 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from jax2d.geometry import GeometryError, circle_mass_properties, polygon_mass_properties, validate_polygon
+from jax2d.geometry import (
+    GeometryError,
+    circle_mass_properties,
+    polygon_mass_properties,
+    signed_area,
+    validate_polygon,
+)
 from kinetix import ranges
 from kinetix.formats import BodySpec, JointSpec, LevelSpec
 from kinetix.level import LevelError
@@ -114,7 +120,7 @@ def _part_quality(points: np.ndarray) -> float:
         validate_polygon((points - centroid).astype(np.float32).astype(np.float64))
     except GeometryError:
         return -1.0
-    area = 0.5 * abs(float(np.sum(points[:, 0] * np.roll(points[:, 1], -1) - np.roll(points[:, 0], -1) * points[:, 1])))
+    area = signed_area(points)  # > 0: parts are counter-clockwise
     perimeter = float(np.sum(np.linalg.norm(points - np.roll(points, -1, axis=0), axis=1)))
     return area / perimeter**2
 
@@ -142,8 +148,7 @@ def cut(vertices, path: str = "polygon") -> list[tuple[int, ...]]:
     if best is None:
         raise LevelError(f"{path}: its {len(v)} vertices cannot be cut into triangles and quadrilaterals that "
                          "float32 physics can simulate (some of its vertices are nearly in a line)")
-    areas = [abs(polygon_mass_properties(v[list(p)], 1.0)[0]) for p in best]
-    return sorted(best, key=lambda p: -areas[best.index(p)])
+    return sorted(best, key=lambda part: -signed_area(v[list(part)]))
 
 
 # ---------------------------------------------------------------- a level

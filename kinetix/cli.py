@@ -139,6 +139,13 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--allowed-hosts", type=comma_list(str), default=[], metavar="NAMES",
                         help="host names or addresses clients may use in the URL besides the --host address, "
                              "localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS rebinding)")
+    parser.add_argument("--trusted-proxies", default="", metavar="ADDRESSES",
+                        help="comma-separated addresses or networks of reverse proxies whose X-Forwarded-For, "
+                             "-Host and -Proto are believed (the client address for rate limits, the Host and "
+                             "Origin checks); '*' any (default: none; docs/deploy.md)")
+    parser.add_argument("--root-path", default="", metavar="PATH",
+                        help="serve everything under this path (e.g. /kinetix/ behind a proxy that forwards "
+                             "/kinetix/...); /kinetix redirects to /kinetix/ (default: the root)")
     parser.add_argument("--write-limit", type=float, default=None, metavar="N",
                         help="gallery writes (save, change, delete, vote) per minute per client address; 0 = no "
                              "limit (default: 60)")

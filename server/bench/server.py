@@ -100,7 +100,7 @@ def _wire_latency(app, samples: int) -> tuple[list[float], list[float]]:
     tabs = []
     try:
         for port in (app.port, app.viser.get_port()):
-            client = ViserTestClient(port, 640, 480)
+            client = ViserTestClient(port, 640, 480, token=app.relay_token if port != app.port else None)
             tabs.append((client, None))
             client.wait_frame(timeout=30)
             tabs[-1] = (client, KeysSocket(app.port, session_nonce(client)))

@@ -181,8 +181,10 @@ def _public_vote(result: dict) -> dict:
     return {key: result[key] for key in ("up", "down", "score", "value")}
 
 
-def _with_thumbnail(item: dict) -> dict:
-    item["thumbnail"] = f"/api/levels/{item['id']}/thumbnail.png?v={item['updated']}"
+def _with_thumbnail(item: dict, request: Request) -> dict:
+    """The summary with its thumbnail's URL (under the server's --root-path, server.web.prefix)."""
+    root = request.scope.get("root_path", "")
+    item["thumbnail"] = f"{root}/api/levels/{item['id']}/thumbnail.png?v={item['updated']}"
     return item
 
 
@@ -200,6 +202,7 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
 
     @router.get("/levels", response_model=LevelPage, summary="List levels, one page at a time")
     async def list_levels(
+        request: Request,
         sort: Literal["newest", "top", "played", "hardest"] = Query("newest", description=", ".join(SORTS)),
         size: Literal["s", "m", "l", "xl"] | None = Query(None, description="size class: " + ", ".join(SIZES)),
         tag: str | None = Query(None, max_length=32),
@@ -210,7 +213,7 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
     ) -> dict:
         items, nxt = await call(store.list_levels, sort=sort, size=size, tag=tag, q=q, author=author, limit=limit,
                                 cursor=cursor)
-        return {"items": [_with_thumbnail(i) for i in items], "next": nxt}
+        return {"items": [_with_thumbnail(i, request) for i in items], "next": nxt}
 
     @router.post("/levels", response_model=Created, status_code=201, openapi_extra=_body_doc(CreateBody),
                  summary="Save a new level (a new author token is returned when none is sent)")
@@ -227,8 +230,8 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
         return {"id": level_id, "author_token": new_token}
 
     @router.get("/levels/{level_id}", response_model=LevelDetail, summary="One level: metadata, stats, level")
-    async def get_level(level_id: str) -> dict:
-        return _with_thumbnail(await call(store.get_level, level_id))
+    async def get_level(level_id: str, request: Request) -> dict:
+        return _with_thumbnail(await call(store.get_level, level_id), request)
 
     @router.get("/levels/{level_id}/thumbnail.png", response_class=Response, summary="The level's PNG thumbnail",
                 responses={200: {"content": {"image/png": {}}}})
@@ -282,7 +285,8 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
             limited(limits, "identity", request)
         result = await call(store.vote, level_id, token, value)
         if result.get("author_token"):
-            response.set_cookie(VOTER_COOKIE, result["author_token"], max_age=VOTER_COOKIE_AGE, path="/api",
+            response.set_cookie(VOTER_COOKIE, result["author_token"], max_age=VOTER_COOKIE_AGE,
+                                path=request.scope.get("root_path", "") + "/api",
                                 httponly=True, samesite="strict", secure=request.url.scheme == "https")
         return _public_vote(result)
 

@@ -52,7 +52,7 @@ class GalleryLink:
         with gui.add_folder("Gallery"):
             save = gui.add_button("Save to gallery")
             open_ = gui.add_button("Open from gallery")
-            gui.add_markdown("[Browse the gallery](/gallery)")
+            gui.add_markdown("[Browse the gallery](gallery)")  # relative: also under --root-path
         save.on_click(lambda event: self._save_modal(session))
         open_.on_click(lambda event: self._open_modal(session))
 

@@ -207,7 +207,16 @@ class App:
         # A new gallery gets the project's levels after the server answers (a thumbnail each: ~13 s from an empty
         # JAX cache), as the first warm-up task; a tab opened meanwhile shows the progress.
         self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir(), seed_dir=None)
-        self.warmup.prepend("the gallery's levels", lambda: self.store.seed(REPO_LEVELS))
+        # Until then the API answers 503 with Retry-After rather than an empty gallery (server.gallery.api).
+        ready = threading.Event()
+
+        def seed() -> None:
+            try:
+                self.store.seed(REPO_LEVELS)  # returns at once when the gallery was seeded (another process)
+            finally:
+                ready.set()  # a failed seed is logged by the warm-up; the gallery then serves what it has
+
+        self.warmup.prepend("the gallery's levels", seed)
         self._start_recordings()
         link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
         link.attach(self.manager)
@@ -217,7 +226,8 @@ class App:
         given = {name: value for name, value in given.items() if value is not None}
         # One process counts in memory; several on one PostgreSQL gallery count together in its rate_buckets table.
         limits = SharedRateLimits(self.store, **given) if self.shared else RateLimits(**given)
-        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits)
+        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits,
+                           ready=ready.is_set)
 
     def _start_recordings(self) -> None:
         """Record every play (server.recordings.recorder) into the gallery's recordings folder, else

@@ -10,26 +10,27 @@ Cross-site and abuse rules: a body must be `Content-Type: application/json` (415
 site cannot send one with a "simple" form or text/plain request (server.web.security checks `Origin` too); writes
 and new identities are rate-limited per client (429 with Retry-After, server.gallery.limits); play statistics are
 not accepted from clients at all: the server records the plays it ran itself (`Store.record_play`, from
-server.play.gallery_tab). A browser's voter identity is a server-issued HttpOnly, SameSite=Strict cookie.
+server.play.gallery_tab). A vote counts only from an identity that played the level in such a play (its tab's
+author token), once per level.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Any, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
-from server.gallery.checks import SIZES, SORTS, StoreError, Unauthorized, check_admin
+from server.gallery.checks import SIZES, SORTS, StoreError, check_admin
 from server.gallery.limits import RateLimited, RateLimits
 from server.gallery.runs import BestRuns
 from server.gallery.store import Store
 
 MAX_BODY = 1_000_000  # bytes
-VOTER_COOKIE = "kinetix_voter"  # a voter token (an author token) issued by the server, HttpOnly
-VOTER_COOKIE_AGE = 400 * 24 * 3600  # seconds; the most Chromium keeps a cookie
+VOTER_COOKIE = "kinetix_voter"  # a voter token earlier versions issued (HttpOnly); still read, no longer issued
 
 
 class Stats(BaseModel):
@@ -188,10 +189,22 @@ def _with_thumbnail(item: dict, request: Request) -> dict:
     return item
 
 
-def make_router(store: Store, admin_token: str | None = None, limits: RateLimits | None = None) -> APIRouter:
+PREPARING_RETRY_S = 2  # a new gallery's seeding takes ~2-13 s (a thumbnail per project level)
+
+
+def make_router(store: Store, admin_token: str | None = None, limits: RateLimits | None = None,
+                ready: Callable[[], bool] | None = None) -> APIRouter:
     """The gallery API on `store`; `admin_token` (e.g. env KINETIX_ADMIN_TOKEN) may update or delete any level;
-    `limits` caps writes and new identities per client (default: RateLimits())."""
-    router = APIRouter(tags=["gallery"])
+    `limits` caps writes and new identities per client (default: RateLimits()). Until `ready()` is true (a new
+    gallery being seeded by `kinetix serve`'s warm-up) every route answers 503 with Retry-After, never an empty
+    gallery."""
+
+    def check_ready() -> None:
+        if ready is not None and not ready():
+            raise HTTPException(503, f"the gallery is being prepared: try again in {PREPARING_RETRY_S} s",
+                                headers={"Retry-After": str(PREPARING_RETRY_S)})
+
+    router = APIRouter(tags=["gallery"], dependencies=[Depends(check_ready)])
     limits = limits if limits is not None else RateLimits()
 
     def user_token(request: Request) -> str | None:
@@ -263,9 +276,10 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
         return {"ok": True}
 
     @router.post("/levels/{level_id}/vote", response_model=VoteResult, openapi_extra=_body_doc(VoteBody),
-                 summary="Vote +1, -1 or 0 (withdraw); one vote per voter per level. The voter is the Bearer "
-                         "author token if sent, else the kinetix_voter cookie, which is issued on the first vote")
-    async def vote(level_id: str, request: Request, response: Response) -> dict:
+                 summary="Vote +1, -1 or 0 (withdraw); one vote per identity per level, and only from an identity "
+                         "that played the level in the browser (the Bearer author token the tab keeps, or an "
+                         "older kinetix_voter cookie)")
+    async def vote(level_id: str, request: Request) -> dict:
         limited(limits, "write", request)
         token = user_token(request)
         data = await read_json(request, {"value": True})
@@ -273,22 +287,11 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
         if not isinstance(value, int) or isinstance(value, bool) or value not in (-1, 0, 1):
             raise HTTPException(422, "value: expected 1 (up), -1 (down) or 0 (withdraw)")
         if token is None:
-            cookie = request.cookies.get(VOTER_COOKIE)
-            if cookie and len(cookie) <= 200:
-                try:
-                    return _public_vote(await call(store.vote, level_id, cookie, value))
-                except HTTPException as error:
-                    if error.status_code != Unauthorized.status:
-                        raise
-                    # an unknown cookie (e.g. a reset gallery): a new voter, like a first vote
-            await call(store.thumbnail, level_id)  # 404 for an unknown level before an identity is spent on it
-            limited(limits, "identity", request)
-        result = await call(store.vote, level_id, token, value)
-        if result.get("author_token"):
-            response.set_cookie(VOTER_COOKIE, result["author_token"], max_age=VOTER_COOKIE_AGE,
-                                path=request.scope.get("root_path", "") + "/api",
-                                httponly=True, samesite="strict", secure=request.url.scheme == "https")
-        return _public_vote(result)
+            cookie = request.cookies.get(VOTER_COOKIE)  # issued by earlier versions; now the tab's token votes
+            token = cookie if cookie and len(cookie) <= 200 else None
+        if token is None:
+            await call(store.thumbnail, level_id)  # 404 for an unknown level first
+        return _public_vote(await call(store.vote, level_id, token, value))
 
     @router.get("/levels/{level_id}/stats", response_model=Stats, summary="Plays, solve rates, best time, votes")
     async def stats(level_id: str) -> dict:

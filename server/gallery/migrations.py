@@ -88,6 +88,10 @@ MIGRATIONS: list[tuple[int, str, list[str]]] = [
             PRIMARY KEY (kind, client))""",
         "CREATE INDEX rate_buckets_stamp ON rate_buckets (stamp)",
     ]),
+    (5, "who played: a vote counts only from an identity that played the level in a server-run play", [
+        "ALTER TABLE plays ADD COLUMN author_id VARCHAR(16) REFERENCES authors(id)",
+        "CREATE INDEX plays_level_author ON plays (level_id, author_id)",
+    ]),
 ]
 
 LATEST = MIGRATIONS[-1][0]

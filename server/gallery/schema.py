@@ -41,7 +41,7 @@ votes_t = Table("votes", _meta, Column("level_id", String(32)), Column("author_i
 plays_t = Table("plays", _meta, Column("id", BigInteger, primary_key=True), Column("level_id", String(32)),
                 Column("kind", String(8)), Column("solved", Boolean), Column("steps", Integer),
                 Column("seconds", Float), Column("created", BigInteger), Column("recording", LargeBinary),
-                Column("recording_path", String(255)))
+                Column("recording_path", String(255)), Column("author_id", String(16)))
 # Shared state of several server processes on one PostgreSQL database (migration 4; docs/deploy.md).
 drafts_t = Table("drafts", _meta, Column("id", String(64), primary_key=True), Column("document", LargeBinary),
                  Column("updated", BigInteger))

@@ -21,6 +21,7 @@ from fastapi.staticfiles import StaticFiles
 
 from server.gallery.api import make_router
 from server.gallery.limits import RateLimits
+from server.gallery.models import problem_handlers
 from server.gallery.store import Store, open_store
 from server.web.security import LOCAL_HOSTS, WebSecurity, allowed_hosts_for
 
@@ -40,6 +41,7 @@ def create_gallery_app(store: Store, admin_token: str | None = None, *, limits: 
     app = FastAPI(title="Kinetix gallery", version="1")
     app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)
     app.include_router(make_router(store, admin_token=admin_token, limits=limits), prefix="/api")
+    problem_handlers(app)  # 422s as {"detail": "..."}, the API's one error shape
     app.add_api_route("/gallery", gallery_page, include_in_schema=False)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app

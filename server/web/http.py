@@ -91,7 +91,10 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
         return FileResponse(static_dir / "gallery.html")
 
     if gallery_router is not None:
+        from server.gallery.models import problem_handlers
+
         app.include_router(gallery_router, prefix="/api")
+        problem_handlers(app)  # 422s as {"detail": "..."}, the API's one error shape
 
     opened: weakref.WeakSet = weakref.WeakSet()  # sessions whose page query was handled (the first hello)
 

@@ -113,6 +113,10 @@ def _bench_server_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sessions", type=positive_int, default=8, help="concurrent playing sessions (default: 8)")
     parser.add_argument("--seconds", type=float, default=5.0, help="seconds per fps measurement (default: 5)")
     parser.add_argument("--chromium", default="/usr/bin/chromium", help="Chromium binary for the latency")
+    capacity = parser.add_mutually_exclusive_group()
+    capacity.add_argument("--capacity-only", action="store_true",
+                          help="measure only the capacity: tabs at >= 25 fps per core with 1 and 2 server processes")
+    capacity.add_argument("--no-capacity", action="store_true", help="skip the capacity measurement")
 
 
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:

@@ -54,6 +54,8 @@ def client_child() -> None:
     sys.path.insert(0, str(ROOT / "tests" / "server"))
     from viser_client import KeysSocket, ViserTestClient, session_nonce
 
+    from server.bench.server import print_rates_when_asked
+
     ports = [int(p) for p in sys.argv[1].split(",")]
     tabs, seconds = int(sys.argv[2]), float(sys.argv[3])
     clients = [ViserTestClient(ports[i % len(ports)], 640, 480) for i in range(tabs)]
@@ -66,12 +68,7 @@ def client_child() -> None:
         socket.up("Space")
     time.sleep(1.0)  # the plays are running
     print("playing", flush=True)
-    sys.stdin.readline()
-    starts = [client.count() for client in clients]
-    t0 = time.monotonic()
-    time.sleep(seconds)
-    elapsed = time.monotonic() - t0
-    print(json.dumps([len(c.frames(start)) / elapsed for c, start in zip(clients, starts, strict=True)]), flush=True)
+    print_rates_when_asked(clients, seconds)
     for socket in keys:
         socket.close()
     for client in clients:

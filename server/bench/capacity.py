@@ -3,11 +3,12 @@
 
 Each server is a real process started as `kinetix serve` starts (the level's size class warm, its batched steps
 compiled, then the malloc settings), serving the bench's level (levels/car_right.json) to every new tab, gallery
-off. The tabs are headless protocol clients (tests/server/viser_client.py) in one child process, spread round-robin over
-the servers through their one port, each pressing Space on its own /keys socket, as a browser tab does. For
-N = 1, 2, 3, 4, 6, 8, ... (TABS_TRIED) the clients count the frames each tab received over `seconds`; the
-capacity is the largest N whose slowest tab got >= MIN_FPS, and the figure is N / the machine's cores. The clients share the machine (they
-decode every frame): the figure is what one machine does with its clients on it, a floor for a real server.
+off. The tabs are headless protocol clients (tests/server/viser_client.py) in one child process, spread
+round-robin over the servers through their one port, each pressing Space on its own /keys socket, as a browser
+tab does. For N = 1, 2, 3, 4, 6, 8, ... (TABS_TRIED) the clients count the frames each tab received over
+`seconds`; the capacity is the largest N whose slowest tab got >= MIN_FPS, and the figure is N / the machine's
+cores. The clients share the machine (they decode every frame): the figure is what one machine does with its
+clients on it, a floor for a real server.
 """
 
 from __future__ import annotations

@@ -238,7 +238,7 @@ class DraftStore:
                 self._cleaned = time.monotonic()
                 try:
                     self.clean_up()
-                except OSError:
+                except Exception:  # a full disk or a lost database connection must not stop the writes
                     log.exception("could not remove old drafts")
 
     def close(self) -> None:

@@ -42,7 +42,8 @@ def start_guarded_viser(viser_module) -> tuple[object, str]:
 
     def guarded_serve(handler, *args, process_request=None, **kwargs):
         def check(connection, request):
-            if not hmac.compare_digest(request.headers.get(TOKEN_HEADER, ""), token):
+            sent = request.headers.get(TOKEN_HEADER, "").encode("utf-8", "surrogateescape")
+            if not hmac.compare_digest(sent, token.encode()):
                 return connection.respond(http.HTTPStatus.FORBIDDEN, "only the kinetix side server may connect\n")
             return process_request(connection, request) if process_request is not None else None
 

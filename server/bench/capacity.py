@@ -55,8 +55,6 @@ def client_child() -> None:
     sys.path.insert(0, str(ROOT / "tests" / "server"))
     from viser_client import KeysSocket, ViserTestClient, session_nonce
 
-    from server.bench.server import print_rates_when_asked
-
     ports = [int(p) for p in sys.argv[1].split(",")]
     tabs, seconds = int(sys.argv[2]), float(sys.argv[3])
     clients = [ViserTestClient(ports[i % len(ports)], 640, 480) for i in range(tabs)]
@@ -74,6 +72,16 @@ def client_child() -> None:
         socket.close()
     for client in clients:
         client.close()
+
+
+def print_rates_when_asked(clients, seconds: float) -> None:
+    """Wait for a line on stdin, then print the frames per second each client received over `seconds` (JSON)."""
+    sys.stdin.readline()
+    starts = [client.count() for client in clients]
+    t0 = time.monotonic()
+    time.sleep(seconds)
+    elapsed = time.monotonic() - t0
+    print(json.dumps([len(c.frames(start)) / elapsed for c, start in zip(clients, starts, strict=True)]), flush=True)
 
 
 def _free_port() -> int:

@@ -180,19 +180,11 @@ def client_process() -> None:
     for client in clients:
         client.wait_frame(timeout=30)
     print("connected", flush=True)
+    from server.bench.capacity import print_rates_when_asked
+
     print_rates_when_asked(clients, seconds)
     for client in clients:
         client.close()
-
-
-def print_rates_when_asked(clients, seconds: float) -> None:
-    """Wait for a line on stdin, then print the frames per second each client received over `seconds` (JSON)."""
-    sys.stdin.readline()
-    starts = [client.count() for client in clients]
-    t0 = time.monotonic()
-    time.sleep(seconds)
-    elapsed = time.monotonic() - t0
-    print(json.dumps([len(c.frames(start)) / elapsed for c, start in zip(clients, starts, strict=True)]), flush=True)
 
 
 def _capacity(args: argparse.Namespace) -> None:

@@ -117,6 +117,8 @@ class App:
         if self.config.max_training_per_client < 1:
             raise ValueError("--max-training-per-client must be at least 1, got "
                              f"{self.config.max_training_per_client}")
+        TrustedProxies.parse(self.config.trusted_proxies)  # a bad address or path fails before anything starts
+        normalise(self.config.root_path)
         if self.config.max_training_queue < 0:
             raise ValueError(f"--max-training-queue cannot be negative, got {self.config.max_training_queue}")
         # Bind the user's port first so a busy port fails loudly (viser would silently take the next one).
@@ -135,8 +137,6 @@ class App:
         if self.config.agents and self.config.warm_agent:
             from server.agents.play import warm_agent as agent
         self.warmup = WarmUp(self.config.warm_sizes, batches=self.config.warm_batches, agent=agent)
-        TrustedProxies.parse(self.config.trusted_proxies)  # a bad address or path fails before anything starts
-        normalise(self.config.root_path)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
             # Loopback only, whatever --host says, and only for the relay, which sends the token viser's port now
             # asks for (server.web.relay): the one port the user gave is the only way in, checks included.

@@ -113,6 +113,10 @@ def _bench_server_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sessions", type=positive_int, default=8, help="concurrent playing sessions (default: 8)")
     parser.add_argument("--seconds", type=float, default=5.0, help="seconds per fps measurement (default: 5)")
     parser.add_argument("--chromium", default="/usr/bin/chromium", help="Chromium binary for the latency")
+    capacity = parser.add_mutually_exclusive_group()
+    capacity.add_argument("--capacity-only", action="store_true",
+                          help="measure only the capacity: tabs at >= 25 fps per core with 1 and 2 server processes")
+    capacity.add_argument("--no-capacity", action="store_true", help="skip the capacity measurement")
 
 
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
@@ -139,6 +143,13 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--allowed-hosts", type=comma_list(str), default=[], metavar="NAMES",
                         help="host names or addresses clients may use in the URL besides the --host address, "
                              "localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS rebinding)")
+    parser.add_argument("--trusted-proxies", default="", metavar="ADDRESSES",
+                        help="comma-separated addresses or networks of reverse proxies whose X-Forwarded-For, "
+                             "-Host and -Proto are believed (the client address for rate limits, the Host and "
+                             "Origin checks); '*' any (default: none; docs/deploy.md)")
+    parser.add_argument("--root-path", default="", metavar="PATH",
+                        help="serve everything under this path (e.g. /kinetix/ behind a proxy that forwards "
+                             "/kinetix/...); /kinetix redirects to /kinetix/ (default: the root)")
     parser.add_argument("--write-limit", type=float, default=None, metavar="N",
                         help="gallery writes (save, change, delete, vote) per minute per client address; 0 = no "
                              "limit (default: 60)")

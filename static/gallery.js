@@ -31,7 +31,7 @@ function card(level) {
   const node = document.getElementById("card").content.firstElementChild.cloneNode(true);
   const q = (selector) => node.querySelector(selector);
   const id = encodeURIComponent(level.id);
-  q(".thumb").href = `/?level=${id}&mode=play`;
+  q(".thumb").href = `./?level=${id}&mode=play`;
   q("img").src = level.thumbnail;
   q("img").alt = level.name;
   q(".name").textContent = level.name;
@@ -47,20 +47,20 @@ function card(level) {
   q(".agent").textContent = percent(level.stats.agent_solve_rate);
   q(".best").textContent = seconds(level.stats.best_human_seconds);
   q(".score").textContent = String(level.stats.score);
-  q(".play").href = `/?level=${id}&mode=play`;
-  q(".edit").href = `/?level=${id}`;
+  q(".play").href = `./?level=${id}&mode=play`;
+  q(".edit").href = `./?level=${id}`;
   // The recording of the fastest human solve, replayed in the editor tab (GET /api/levels/{id}/best-run.mcap).
   q(".best-run").disabled = !level.stats.has_best_run;
   q(".best-run").title = level.stats.has_best_run ? "Replay the fastest human solve" : "No recorded solve yet";
-  q(".best-run").addEventListener("click", () => { location.href = `/?level=${id}&mode=replay`; });
-  q(".watch").href = `/?level=${id}&mode=agent`;
+  q(".best-run").addEventListener("click", () => { location.href = `./?level=${id}&mode=replay`; });
+  q(".watch").href = `./?level=${id}&mode=agent`;
   const mine = myVotes()[level.id] || 0;
   q(".up").classList.toggle("mine", mine === 1);
   q(".down").classList.toggle("mine", mine === -1);
   q(".up").addEventListener("click", () => vote(level, node, mine === 1 ? 0 : 1));
   q(".down").addEventListener("click", () => vote(level, node, mine === -1 ? 0 : -1));
   q(".share").addEventListener("click", async () => {
-    const link = new URL(`/?level=${id}&mode=play`, location.href).href;
+    const link = new URL(`./?level=${id}&mode=play`, location.href).href;
     try { await navigator.clipboard.writeText(link); setStatus("Link copied: " + link, "info"); }
     catch { setStatus("Share this link: " + link, "info"); }
   });
@@ -73,13 +73,13 @@ async function vote(level, node, value) {
   try {
     let result;
     try {
-      result = await api(`/api/levels/${encodeURIComponent(level.id)}/vote`,
+      result = await api(`api/levels/${encodeURIComponent(level.id)}/vote`,
         { method: "POST", headers, body: JSON.stringify({ value }) });
     } catch (error) {
       if (error.status !== 401 || !token()) throw error;
       localStorage.removeItem(TOKEN_KEY);  // a token this gallery does not know (e.g. a reset database)
       delete headers.Authorization;
-      result = await api(`/api/levels/${encodeURIComponent(level.id)}/vote`,
+      result = await api(`api/levels/${encodeURIComponent(level.id)}/vote`,
         { method: "POST", headers, body: JSON.stringify({ value }) });
     }
     if (result.author_token) localStorage.setItem(TOKEN_KEY, result.author_token);
@@ -104,7 +104,7 @@ async function load(reset) {
   if (!reset) params.set("cursor", state.next);
   more.disabled = true;
   try {
-    const page = await api("/api/levels?" + params);
+    const page = await api("api/levels?" + params);
     if (request !== state.request) return;  // a newer load (a filter changed meanwhile) owns the grid
     if (reset) { grid.replaceChildren(); state.shown.clear(); }
     for (const level of page.items) {

@@ -23,7 +23,7 @@ import json
 import logging
 from urllib.parse import parse_qs
 
-from server.gallery.checks import StoreError, Unauthorized
+from server.gallery.checks import StoreError
 from server.gallery.runs import BestRuns
 from server.gallery.store import Store
 
@@ -52,7 +52,7 @@ class GalleryLink:
         with gui.add_folder("Gallery"):
             save = gui.add_button("Save to gallery")
             open_ = gui.add_button("Open from gallery")
-            gui.add_markdown("[Browse the gallery](/gallery)")
+            gui.add_markdown("[Browse the gallery](gallery)")  # relative: also under --root-path
         save.on_click(lambda event: self._save_modal(session))
         open_.on_click(lambda event: self._open_modal(session))
 
@@ -109,19 +109,24 @@ class GalleryLink:
     # ------------------------------------------------------------------ actions (also the tests' entry points)
 
     def save(self, session, name: str, description: str = "", tags: list[str] | None = None) -> str:
-        """Save the tab's level; returns the new level's id. A stale author token is replaced by a new one."""
+        """Save the tab's level as the tab's identity; returns the new level's id. A stale author token is replaced
+        by a new identity, which the tab then keeps (`identity`)."""
         document = json.loads(session.editor.export("ours"))
         kwargs = dict(description=description, tags=tags or [], parent=session.gallery_id)
-        try:
-            level_id, new_token = self.store.create_level(name, document, token=session.author_token, **kwargs)
-        except Unauthorized:  # a token this gallery does not know (e.g. another server's): start a new author
-            level_id, new_token = self.store.create_level(name, document, token=None, **kwargs)
-        if new_token:
-            session.author_token = new_token
-            # keys.js copies it into localStorage, where the gallery page finds it too.
-            session.client.gui.add_html(f'<div id="kinetix-token" data-token="{html.escape(new_token)}" hidden></div>')
+        level_id, _ = self.store.create_level(name, document, token=self.identity(session), **kwargs)
         session.gallery_id = level_id
         return level_id
+
+    def identity(self, session) -> str:
+        """The tab's gallery identity (author token): the one it has if this gallery knows it, else a new one, kept
+        by the session and handed to the page (keys.js puts it in localStorage, where the gallery page and the next
+        session of this tab find it). One identity per tab: its saves, its plays and so its votes."""
+        token, new = self.store.identity(session.author_token)
+        if new:
+            session.author_token = token
+            # keys.js copies it into localStorage, where the gallery page finds it too.
+            session.client.gui.add_html(f'<div id="kinetix-token" data-token="{html.escape(token)}" hidden></div>')
+        return token
 
     def open(self, session, level_id: str) -> None:
         """Load a gallery level into the tab for editing (a later save is a remix of it)."""
@@ -168,8 +173,10 @@ class GalleryLink:
             return
         best = self.runs.candidate(self.recorder, session, result, steps, seconds) if self.runs else None
         try:
+            # A human play makes the tab's identity one that may vote on this level (Store.vote).
             self.store.record_play(level_id, kind, solved=result == "solved", steps=int(steps),
-                                   seconds=float(seconds), recording_path=best)
+                                   seconds=float(seconds), recording_path=best,
+                                   author=self.identity(session) if kind == "human" else None)
         except StoreError as error:  # e.g. the level was deleted meanwhile; a lost statistic is not worth a crash
             log.warning("play not recorded for %s: %s", level_id, error)
             if best is not None:

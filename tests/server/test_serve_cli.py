@@ -64,6 +64,18 @@ def test_serve_refuses_a_busy_port(tmp_path):
     assert f"cannot listen on 127.0.0.1:{port}" in result.stdout
 
 
+@pytest.mark.parametrize("option, value, message", [
+    ("--trusted-proxies", "proxy.lan", "--trusted-proxies: 'proxy.lan' is not an IP address or network"),
+    ("--root-path", "/a b/", "--root-path: '/a b/' must be a plain path such as /kinetix/"),
+])
+def test_serve_refuses_a_bad_proxy_or_root_path_before_starting(tmp_path, option, value, message):
+    result = subprocess.run([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--warm", "none",
+                             "--data", str(tmp_path), option, value],
+                            cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 2 and f"kinetix serve: {message}" in result.stdout, result.stdout + result.stderr
+
+
 def test_serve_parses_the_training_cap_and_refuses_zero(capsys):
     from kinetix.cli import build_parser
 

@@ -15,9 +15,9 @@ import jax
 import jax2d
 from kinetix.agents import curricula
 from kinetix.agents.ppo import TrainConfig, make_train
-from kinetix.agents.train import RANDOM_DENSE_REWARD
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.level import WALLS_SOLVER, size_class
+from kinetix.level_source import RANDOM_DENSE_REWARD
 
 
 def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int) -> dict:

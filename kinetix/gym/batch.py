@@ -37,8 +37,10 @@ from kinetix.reset_fns import list_index
 INFO_KEYS = ("solved", "failed", "nan", "distance", "timestep", "frozen")
 
 
-def _select(pred, on_true, on_false):
-    return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+def _select_rows(mask, on_true, on_false):
+    """Tree-wise select of whole rows (leading axis) by a (N,) mask."""
+    return jax.tree.map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), on_true,
+                        on_false)
 
 
 def _start_info(state: EnvState) -> dict:
@@ -105,10 +107,9 @@ class Batch:
         self._noop = np.zeros((n, *action_space.shape), np.float32 if action == "continuous" else np.int32)
         # One program does every call, steps and resets alike (a reset is a step whose environments all start
         # over): one compilation per environment instead of three.
-        self._advance = jax2d.jit(per_device(jax.vmap(self._advance_one), batch=n, in_axes=(0,) * 6),
-                                  donate_argnums=(0,))
+        self._advance_jit = jax2d.jit(per_device(self._advance, batch=n, in_axes=(0,) * 6), donate_argnums=(0,))
 
-    # ------------------------------------------------------------ one environment (vmapped above)
+    # ------------------------------------------------------------ the program
 
     def _episode_params(self, key: jax.Array) -> EnvParams:
         if self.level_params is None:
@@ -117,7 +118,7 @@ class Batch:
         return jax.tree.map(lambda x: x[i], self.level_params)
 
     def _start(self, key: jax.Array) -> Carry:
-        """A fresh episode on key chain `key` (used for shapes; _advance_one starts episodes the same way)."""
+        """A fresh episode on key chain `key` (used for shapes; _advance starts episodes the same way)."""
         key, sub = jax.random.split(key)
         state = self.env.initial_state(sub)
         return Carry(key, state, self._episode_params(sub), jnp.asarray(False))
@@ -129,25 +130,36 @@ class Batch:
     def _outputs(self, carry: Carry, reward, terminated, truncated, info):
         return (self.env.observe(carry.state), jnp.asarray(reward, jnp.float32), terminated, truncated, info)
 
-    def _advance_one(self, carry: Carry, action, start: jax.Array, hold: jax.Array, new_key: jax.Array,
-                     use_new_key: jax.Array):
-        """One environment's call: start a new episode (asked by `start`, or because the last step ended it and
-        `hold` is not set), keep the episode as it is (`hold`: a reset that leaves this environment alone), or
-        step it with `action`. A new episode draws from `new_key`'s chain where use_new_key, else from its own."""
+    def _advance(self, carry: Carry, actions, start: jax.Array, hold: jax.Array, new_keys: jax.Array,
+                 use_new_keys: jax.Array):
+        """A batch's call, per environment: start a new episode (asked by `start`, or because the last step ended
+        it and `hold` is not set), keep the episode as it is (`hold`: a reset that leaves this environment alone),
+        or step it with its action. A new episode draws from `new_keys`' chain where use_new_keys, else its own.
+
+        The restarts run under one lax.cond: most steps restart no environment and skip making fresh episodes and
+        selecting between whole states (a generated level per environment and step, for random levels)."""
         start = start | (carry.ended & ~hold)
         keep = hold & ~start
-        key, sub = jax.random.split(jnp.where(use_new_key, new_key, carry.key))
-        stepped, reward, terminated, truncated, info = self.env.transition(carry.state, action, carry.params)
-        fresh = self.env.initial_state(sub)
-        state = _select(start, fresh, _select(keep, carry.state, stepped))
-        params = _select(start, self._episode_params(sub), carry.params)
+        chains = jax.vmap(jax.random.split)(jnp.where(use_new_keys[:, None], new_keys, carry.key))
+        keys, subs = chains[:, 0], chains[:, 1]
+        stepped, reward, terminated, truncated, info = jax.vmap(self.env.transition)(carry.state, actions,
+                                                                                     carry.params)
+
+        def restart(_):
+            fresh = jax.vmap(self.env.initial_state)(subs)
+            state = _select_rows(start, fresh, _select_rows(keep, carry.state, stepped))
+            return state, _select_rows(start, jax.vmap(self._episode_params)(subs), carry.params)
+
+        state, params = jax.lax.cond(jnp.any(start | keep), restart, lambda _: (stepped, carry.params), None)
         quiet = start | keep  # nothing happened: outputs of the episode's start, reward 0
-        info = _select(quiet, _start_info(state), info)
+        info = _select_rows(quiet, jax.vmap(_start_info)(state), info)
         terminated, truncated = terminated & ~quiet, truncated & ~quiet
         reward = jnp.where(quiet, 0.0, reward)
         ended = jnp.where(keep, carry.ended, terminated | truncated)
-        carry = Carry(jnp.where(keep, carry.key, key), state, params, ended)
-        return carry, pack(self._outputs(carry, reward, terminated, truncated, info)).buffer
+        carry = Carry(jnp.where(keep[:, None], carry.key, keys), state, params, ended)
+        outputs = jax.vmap(lambda c, *rest: pack(self._outputs(c, *rest)).buffer)(carry, reward, terminated,
+                                                                                  truncated, info)
+        return carry, outputs
 
     # ------------------------------------------------------------ from Python
 
@@ -156,7 +168,7 @@ class Batch:
         if self.carry is None:  # an all-ended placeholder: the first call starts every episode
             self.carry = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), self._carry_shape)
         actions = shard_batch(jnp.asarray(actions), self.num_envs)
-        self.carry, buffer = self._advance(self.carry, actions, *flags)
+        self.carry, buffer = self._advance_jit(self.carry, actions, *flags)
         return host_rows(np.asarray(jax.device_get(buffer)), self.layout)
 
     def _flags(self, start, hold, new_keys, use_new_keys) -> tuple:

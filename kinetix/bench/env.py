@@ -323,18 +323,28 @@ def table_row(result: dict) -> str:
             f"{result['compile_s']:>11.2f}{devices}{warning}")
 
 
-def run(args: argparse.Namespace) -> int:
+def load_bench_levels(args: argparse.Namespace) -> list[tuple[str, object, Path]] | None:
+    """(name, LevelFile, path) of --level or of the reference level of each of --sizes; None (after printing why)
+    when one does not load."""
     from kinetix.level import LevelError
     from kinetix.levels import load_level
 
     paths = [Path(args.level)] if args.level else default_level_paths(args.sizes)
-    level_files = []
+    levels = []
     for path in paths:
         try:
-            level_files.append((path.stem, load_level(path)))
+            levels.append((path.stem, load_level(path), path))
         except LevelError as error:
             print(f"cannot load level {path}: {error}", file=sys.stderr)
-            return 2
+            return None
+    return levels
+
+
+def run(args: argparse.Namespace) -> int:
+    loaded = load_bench_levels(args)
+    if loaded is None:
+        return 2
+    level_files = [(name, level_file) for name, level_file, _ in loaded]
 
     if args.json:
         def report(result: dict) -> None:

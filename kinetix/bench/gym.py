@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from kinetix.bench.engine import SEED, measured_on, peak_rss_mb
-from kinetix.bench.env import compile_rollout, default_level_paths
+from kinetix.bench.env import compile_rollout, load_bench_levels
 
 ACTION_POOL = 16  # distinct action batches cycled through (drawing them is not what is measured)
 WARMUP_STEPS = 5
@@ -129,16 +129,9 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         print("kinetix bench gym needs Gymnasium: pip install -e '.[gym]'", file=sys.stderr)
         return 2
-    from kinetix.level import LevelError
-    from kinetix.levels import load_level
-
-    paths = [Path(args.level)] if args.level else default_level_paths(args.sizes)
-    for path in paths:
-        try:
-            load_level(path)
-        except LevelError as error:
-            print(f"cannot load level {path}: {error}", file=sys.stderr)
-            return 2
+    loaded = load_bench_levels(args)
+    if loaded is None:
+        return 2
     if args.json:
         def report(result: dict) -> None:
             print(json.dumps(result), flush=True)
@@ -150,5 +143,5 @@ def run(args: argparse.Namespace) -> int:
         def report(result: dict) -> None:
             print(table_row(result), flush=True)
 
-    benchmark(paths, args.batches, args.steps, args.observation, report)
+    benchmark([path for _, _, path in loaded], args.batches, args.steps, args.observation, report)
     return 0

@@ -20,6 +20,7 @@ those of the level kinetix.reset_fns.reset_list drew with the same key (`list_in
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import os
 
@@ -35,6 +36,10 @@ from kinetix.level_source import LevelSource
 from kinetix.reset_fns import list_index
 
 INFO_KEYS = ("solved", "failed", "nan", "distance", "timestep", "frozen")
+# Built programs by content (Batch._program_key), so N equal single envs (SB3's DummyVecEnv, say) trace one
+# program, not N: tracing the step of an l level takes seconds.
+PROGRAM_CACHE_SIZE = 8
+_PROGRAMS: dict[str, tuple] = {}
 
 
 def _select_rows(mask, on_true, on_false):
@@ -98,16 +103,34 @@ class Batch:
         self.carry: Carry | None = None
 
         n = num_envs
-        keys = jax.ShapeDtypeStruct((n, 2), jnp.uint32)
-        self._carry_shape = jax.eval_shape(jax.vmap(self._start), keys)
-        self.layout = jax.eval_shape(lambda key: self._start_outputs(self._start(key)), jax.random.PRNGKey(0)).layout
         action_space = self.env.action_space
         self._false, self._no_keys = np.zeros(n, bool), np.zeros((n, 2), np.uint32)
         self._step_flags = None
         self._noop = np.zeros((n, *action_space.shape), np.float32 if action == "continuous" else np.int32)
+        key = self._program_key(observation, action, pixel_resolution)
+        if key in _PROGRAMS:  # an equal batch was built before: share its traced and compiled program
+            self.env, self._carry_shape, self.layout, self._advance_jit = _PROGRAMS[key]
+            return
+        self._carry_shape = jax.eval_shape(jax.vmap(self._start), jax.ShapeDtypeStruct((n, 2), jnp.uint32))
+        self.layout = jax.eval_shape(lambda key: self._start_outputs(self._start(key)), jax.random.PRNGKey(0)).layout
         # One program does every call, steps and resets alike (a reset is a step whose environments all start
         # over): one compilation per environment instead of three.
         self._advance_jit = jax2d.jit(per_device(self._advance, batch=n, in_axes=(0,) * 6), donate_argnums=(0,))
+        if len(_PROGRAMS) >= PROGRAM_CACHE_SIZE:
+            _PROGRAMS.pop(next(iter(_PROGRAMS)))
+        _PROGRAMS[key] = (self.env, self._carry_shape, self.layout, self._advance_jit)
+
+    def _program_key(self, observation: str, action: str, pixel_resolution: int) -> str:
+        """What the program depends on: the settings, the levels' content (not their paths) and the params."""
+        digest = hashlib.sha256(repr((self.source.spec if self.source.random else "files", self.source.size,
+                                      self.source.frame_skip, self.source.solver, observation, action,
+                                      pixel_resolution, self.num_envs, jax.device_count())).encode())
+        content = (self.params, self.level_params, None if self.source.random else self.source.stacked)
+        for leaf in jax.tree.leaves(content):
+            array = np.asarray(leaf)
+            digest.update(f"{array.dtype}{array.shape}".encode())
+            digest.update(array.tobytes())
+        return digest.hexdigest()
 
     # ------------------------------------------------------------ the program
 

@@ -235,6 +235,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dense-reward", type=float, default=None,
                         help="shaping scale (default: the level's; 0.1 on random levels)")
     parser.add_argument("--no-shard", action="store_true", help="do not split the env batch over local devices")
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="CPU devices to split the env batch over (default: one per core in a single-process "
+                             "run, one per process with --coordinator/--num-processes; XLA_FLAGS wins)")
     parser.add_argument("--minutes", type=float, default=None,
                         help="stop after this much wall-clock time, compiling included (default: no limit)")
     parser.add_argument("--target-solve-rate", type=float, default=None, metavar="RATE",
@@ -319,6 +322,11 @@ def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")
     parser.add_argument("--updates-per-call", type=positive_int, default=4, help="updates per chunk (default: 4)")
     parser.add_argument("--chunks", type=positive_int, default=3, help="timed chunks after the first (default: 3)")
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="CPU devices to split the env batch over (default: one per core, as bench env)")
+    parser.add_argument("--env", action="store_true",
+                        help="also measure `kinetix bench env`'s rollout at the same size and batch in the same run, "
+                             "and print the share of it that training keeps")
 
 
 def _bench_gym_arguments(parser: argparse.ArgumentParser) -> None:
@@ -399,6 +407,9 @@ def main(argv: list[str] | None = None) -> int:
     except CommandUnavailable as error:
         print(f"kinetix {' '.join(command.path)} is not available yet: {error}", file=sys.stderr)
         return 2
+    if getattr(args, "devices", None) is None and (getattr(args, "coordinator", None)
+                                                   or getattr(args, "num_processes", None)):
+        args.devices = 1  # several processes on one machine: each already has its share of the cores
     if getattr(args, "devices", False) is not False:  # before JAX starts: XLA reads the flag once
         from kinetix.devices import confine_to_one_core, request_cpu_devices
 

@@ -119,7 +119,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     if not shard and jax.process_count() > 1:
         raise ValueError("--no-shard cannot be used with several processes: each would train the whole batch alone")
     sharder = None
-    if shard and jax.device_count() > 1:
+    if shard and jax.device_count() > 1 and (jax.process_count() > 1 or config.num_envs % jax.device_count() == 0):
+        # (one process with a batch its devices do not divide trains on one device, as kinetix.devices.batch_devices)
         from kinetix.agents.sharding import batch_sharder, local_mesh
 
         sharder = batch_sharder(local_mesh(jax.devices()), config.num_envs)  # all processes' devices

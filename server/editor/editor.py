@@ -373,8 +373,13 @@ class Editor(PointerGestures):
         return levelio.export(self.level_file(), format)
 
     def export_notes(self, format: str = "ours") -> list[str]:
-        """What the public tools do differently with the exported file (e.g. 5-8-vertex polygons in Kinetix)."""
+        """What the export does and what the public tools do differently with the file: for Kinetix, what was
+        split and the size class written, then notes (levelio.export_notes)."""
         return levelio.export_notes(self.level_file(), format)
+
+    def export_with_notes(self, format: str = "ours") -> tuple[str, list[str]]:
+        """(export(format), export_notes(format)) from one export."""
+        return levelio.export_with_notes(self.level_file(), format)
 
     # ------------------------------------------------------------ keys and overlay
 

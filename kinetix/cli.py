@@ -340,7 +340,25 @@ def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "and print the share of it that training keeps")
 
 
+def _bench_gym_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print results as JSON lines instead of a table")
+    parser.add_argument("--sizes", type=comma_list(str, allowed={"s", "m", "l"}), default=["s", "m", "l"],
+                        help="size classes whose reference level to measure, comma-separated (default: s,m,l)")
+    parser.add_argument("--level", metavar="FILE", help="measure this level file instead of the reference levels")
+    parser.add_argument("--batches", type=comma_list(positive_int), default=[512],
+                        help="numbers of environments, comma-separated (default: 512)")
+    parser.add_argument("--steps", type=positive_int, default=100, help="agent steps per measurement (default: 100)")
+    parser.add_argument("--observation", choices=["entity", "flat", "pixels"], default="entity",
+                        help="the gym env's observation type (default: entity)")
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="CPU devices to split each batch over, for both envs (default: one per core)")
+    parser.add_argument("--backend", choices=("cpu", "gpu"), default=None,
+                        help="run on this JAX backend (default: JAX's choice, a GPU where there is one)")
+
+
 COMMANDS += [
+    Command(("bench", "gym"), "measure the Gymnasium vector env (kinetix.gym) against the JAX env at one batch",
+            "kinetix.bench.gym:run", _bench_gym_arguments),
     Command(("bench", "train"), "measure PPO training throughput (env steps/s including updates) per size class",
             "kinetix.agents.bench:run", _bench_train_arguments),
     Command(("train",), "train a PPO agent on a level, a directory of levels or random levels",

@@ -17,10 +17,10 @@ import jax2d
 from kinetix.agents import curricula
 from kinetix.agents.ppo import TrainConfig, make_train
 from kinetix.agents.sharding import batch_sharder, local_mesh
-from kinetix.agents.train import RANDOM_DENSE_REWARD
 from kinetix.devices import batch_devices
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.level import WALLS_SOLVER, size_class
+from kinetix.level_source import RANDOM_DENSE_REWARD
 
 
 def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int) -> dict:

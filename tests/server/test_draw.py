@@ -36,6 +36,16 @@ def test_bodies_have_role_colours_and_anti_aliased_edges(level):
     assert len({tuple(p) for p in row}) > 3 and blended
 
 
+def test_the_browser_frame_without_text_is_kinetix_draws_level_frame(level):
+    """kinetix.gym's rgb_array frames come from kinetix.draw.level_frame: the browser's frames less the text."""
+    from kinetix.draw import level_frame
+
+    view = View(320, 240)
+    frame = draw_frame(scene_of(level), view, legend=False)
+    assert np.array_equal(frame, level_frame(level, view))
+    assert not np.array_equal(draw_frame(scene_of(level), view, hud="PLAY"), frame)
+
+
 def test_overlay_hud_and_banner_change_the_frame(level):
     view = View(400, 300)
     base = draw_frame(scene_of(level), view)

@@ -140,25 +140,55 @@ def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, 
     return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy}
 
 
+SHUFFLE_BLOCKS = 8  # env blocks the minibatch shuffle draws evenly from (see shuffle_minibatches)
+
+
+def shuffle_blocks(config: TrainConfig) -> int:
+    """The largest divisor of SHUFFLE_BLOCKS that splits the envs and every minibatch evenly."""
+    blocks = SHUFFLE_BLOCKS
+    while config.num_envs % blocks or config.batch_size % (blocks * config.num_minibatches):
+        blocks //= 2
+    return blocks
+
+
+def shuffle_minibatches(tree: Any, key: jax.Array, config: TrainConfig) -> Any:
+    """(T, E, ...) leaves -> (num_minibatches, minibatch, ...): every sample once, in a random order.
+
+    The envs are cut into `shuffle_blocks` blocks of consecutive envs; each block's samples are permuted within the
+    block and every minibatch takes the same number from each block (a stratified shuffle). When the env axis is
+    split over devices (kinetix.agents.sharding), whole blocks sit on one device and the shuffle moves no data
+    between devices; a permutation of the whole batch made XLA gather it onto every device (training on 2 CPU
+    devices ran at half the speed of one). The blocks do not depend on the device count, so one device and several
+    draw the same minibatches."""
+    blocks, minibatches = shuffle_blocks(config), config.num_minibatches
+    per_block = config.batch_size // blocks
+    orders = jax.vmap(lambda k: jax.random.permutation(k, per_block))(jax.random.split(key, blocks))
+
+    def one(x):
+        rest = x.shape[2:]
+        x = jnp.swapaxes(x, 0, 1).reshape((blocks, per_block) + rest)  # env-major: an env's steps stay together
+        x = jax.vmap(lambda block, order: block[order])(x, orders)
+        x = x.reshape((blocks, minibatches, per_block // minibatches) + rest)
+        return jnp.swapaxes(x, 0, 1).reshape((minibatches, config.batch_size // minibatches) + rest)
+
+    return jax.tree.map(one, tree)
+
+
 def ppo_update(network: nn.Module, action_type: str, config: TrainConfig, train_state: TrainState,
                batch: Transition, advantages: jax.Array, targets: jax.Array, key: jax.Array):
     """`update_epochs` epochs of minibatch SGD on one rollout (leading axes (T, E)). Returns (state, mean losses).
 
     Pure: under a mesh the batch may be sharded over its env axis and XLA inserts the gradient all-reduce."""
-    flat = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), (batch, advantages, targets))
     loss = lambda p, mb: ppo_loss(network, action_type, config, p, *mb)
 
     def epoch(state, epoch_key):
-        order = jax.random.permutation(epoch_key, config.batch_size)
-        shuffled = jax.tree.map(lambda x: x[order].reshape((config.num_minibatches, -1) + x.shape[1:]), flat)
-
         def minibatch(state, mb):
             mb_batch, mb_advantages, mb_targets = mb
             aux, grads = parts.mean_grad(loss, state.params,
                                          (mb_batch, normalise_advantages(mb_advantages), mb_targets))
             return state.apply_gradients(grads=grads), aux
 
-        return jax.lax.scan(minibatch, state, shuffled)
+        return jax.lax.scan(minibatch, state, shuffle_minibatches((batch, advantages, targets), epoch_key, config))
 
     train_state, aux = jax.lax.scan(epoch, train_state, jax.random.split(key, config.update_epochs))
     return train_state, jax.tree.map(jnp.mean, aux)

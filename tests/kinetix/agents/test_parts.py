@@ -108,3 +108,18 @@ def test_successor_values_are_those_of_the_true_successor(monkeypatch):
     np.testing.assert_allclose(bootstrap[:-1][going], value[1:][going], rtol=1e-6)
     # the final observation of a timed-out episode is another state than the fresh level the env resets to
     assert not np.allclose(bootstrap[:-1][truncated], value[1:][truncated])
+
+
+@pytest.mark.parametrize("num_envs,num_steps,num_minibatches", [(16, 8, 4), (12, 4, 2), (5, 4, 4)])
+def test_shuffle_takes_every_sample_once_and_evenly_from_each_block(num_envs, num_steps, num_minibatches):
+    config = ppo.TrainConfig(num_envs=num_envs, num_steps=num_steps, num_minibatches=num_minibatches)
+    blocks = ppo.shuffle_blocks(config)
+    ids = jnp.arange(num_steps * num_envs).reshape(num_steps, num_envs)  # sample id = t * E + e
+    shuffled = np.asarray(ppo.shuffle_minibatches({"id": ids}, jax.random.key(3), config)["id"])
+    assert shuffled.shape == (num_minibatches, num_steps * num_envs // num_minibatches)
+    assert sorted(shuffled.ravel().tolist()) == list(range(num_steps * num_envs))
+    env_block = (shuffled % num_envs) // (num_envs // blocks)
+    for row in env_block:  # every minibatch takes as many samples from each block of envs
+        assert np.bincount(row, minlength=blocks).tolist() == [len(row) // blocks] * blocks
+    again = np.asarray(ppo.shuffle_minibatches({"id": ids}, jax.random.key(4), config)["id"])
+    assert not np.array_equal(again, shuffled)  # another key, another order

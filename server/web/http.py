@@ -28,7 +28,7 @@ from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, PlainTextResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.web.security import LOCAL_HOSTS, WebSecurity
+from server.web.security import LOCAL_HOSTS, VISER_PAGE_CONTENT_SECURITY_POLICY, WebSecurity
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,8 @@ def inject(page: str) -> str:
     """The viser page with our frame display, key script and labels right after <head> (before viser's code).
 
     The paths are relative to the page, so a reverse proxy may serve the app under a path of its own."""
-    snippet = ('<script src="static/frames.js"></script><script src="static/keys.js"></script>'
+    snippet = ('<script src="static/passive.js"></script>'  # first: before any listener is added
+               '<script src="static/frames.js"></script><script src="static/keys.js"></script>'
                '<script src="static/labels.js"></script>')  # labels.js ties viser's labels to their inputs
     head = page.find("<head>")
     if head < 0:
@@ -70,7 +71,9 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def index() -> HTMLResponse:
-        return HTMLResponse(page, headers={"Cache-Control": "no-store"})
+        # viser's client needs a policy of its own (server.web.security); the middleware keeps a header already set.
+        return HTMLResponse(page, headers={"Cache-Control": "no-store",
+                                           "Content-Security-Policy": VISER_PAGE_CONTENT_SECURITY_POLICY})
 
     @app.websocket("/")
     async def viser_socket(socket: WebSocket) -> None:

@@ -401,6 +401,7 @@ class Editor(PointerGestures):
         elif key == "Escape":
             self._cancel()
             self.selection = []
+            self.message, self.size_offer, self._retry = None, None, None  # Esc dismisses a refusal too
             self._bump()
         elif key == "Enter":
             if not self._points:

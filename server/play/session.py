@@ -134,8 +134,10 @@ class Session(PlayLoop):
             except Exception:  # an editor bug must not kill the tab; it is logged and shown
                 log.exception("editor.%s failed", method)
                 message = f"internal error in {method}"
-            if isinstance(message, str):
+            if isinstance(message, str) and self.editor.overlay() is None:  # a stand-in without an overlay
                 self._message = message
+            # The editor's own message (a refusal, "no polygon left: ...") is drawn from its overlay and goes when
+            # the editor clears it (the next edit, Move to size, Esc); kept here, it outlived its cause (issue 37).
             if self.panel is not None and hasattr(self.panel, "refresh"):
                 self.panel.refresh()
             self.refresh()

@@ -26,6 +26,7 @@ class PlayButtons:
     def update(self, mode: str) -> None:
         """Labels and states for this mode ("edit" | "ready" | "play" | "paused" | "ended" | "replay")."""
         self.play.label = "Play (Space)" if mode == "edit" else "Start (Space)" if mode == "ready" else "Stop (Space)"
+        self.play.visible = mode != "ended"  # an ended play has nothing to stop: Play again or Edit (Space: Edit)
         self.pause.disabled = mode not in ("play", "paused")
         self.pause.label = "Resume" if mode == "paused" else "Pause"
         self.step.disabled = mode not in ("play", "paused", "ready")

@@ -82,6 +82,14 @@ def test_play_link_waits_for_the_first_key_then_right_rolls_car_right_right(brow
         tab.page.keyboard.up("ArrowRight")
         assert session._result == "solved", "holding Right drives car right to the blue ball on its right"
         assert _chassis_x(session) > 2.0 > float(start[4, 0])
+        # The play is over: the Play folder offers Play again and Edit, and nothing to stop.
+        panel = tab.page.get_by_role("button", name="Play again", exact=True)
+        panel.wait_for(timeout=10_000)
+        assert tab.page.get_by_role("button", name="Edit", exact=True).is_visible()
+        assert tab.page.get_by_role("button", name="Stop (Space)", exact=True).count() == 0
+        tab.page.keyboard.press("Space")  # Space goes back to editing, as Edit does
+        _wait(lambda: session.mode == "edit")
+        tab.page.get_by_role("button", name="Play (Space)", exact=True).wait_for(timeout=10_000)
         tab.assert_local_only()
     finally:
         tab.close()

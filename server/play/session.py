@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke.",
                "stopped": "Stopped."}
+MAX_FIELDS = 32  # text fields taken from one dialog (set_fields)
 START_HINT = "Press Space or an arrow key to start"  # on the canvas while a play waits for the player (mode "ready")
 
 
@@ -172,6 +173,18 @@ class Session(PlayLoop):
                 self.manager.scheduler.wake()
             elif kind == "down" and code == "Escape":
                 self.stop()
+
+    def set_fields(self, values) -> None:
+        """The values of a dialog's text fields as the page shows them, sent by keys.js before a click on one of
+        the dialog's buttons: viser's client can drop a field's update that came just before another one."""
+        if not isinstance(values, dict):
+            return
+        with self.lock:
+            handles = getattr(getattr(self.client, "gui", None), "_gui_input_handle_from_uuid", {})
+            for uuid, value in list(values.items())[:MAX_FIELDS]:
+                handle = handles.get(uuid) if isinstance(uuid, str) else None
+                if handle is not None and isinstance(value, str) and isinstance(handle.value, str):
+                    handle.value = value  # text fields only; an unchanged value sends nothing
 
     def release_all_keys(self) -> None:
         with self.lock:

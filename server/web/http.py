@@ -130,6 +130,10 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 if kind == "blur":
                     session.release_all_keys()
                     continue
+                if kind == "fields":  # a dialog's text fields, sent before its button's click (keys.js)
+                    await asyncio.get_running_loop().run_in_executor(None, session.set_fields, event.get("values"))
+                    await socket.send_text(json.dumps({"type": "fields_ack", "id": event.get("id")}))
+                    continue
                 if kind not in ("down", "up") or not isinstance(code, str):
                     continue
                 seq = event.get("seq")

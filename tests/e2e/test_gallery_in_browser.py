@@ -126,3 +126,27 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         tab.assert_local_only()
     finally:
         tab.close()
+
+
+def test_save_keeps_every_field_typed_right_before_the_click(browser, app):
+    """viser's client sends panel updates through one throttled sender that keeps only the newest: a Description
+    filled right before Tags was never sent, and the level was saved without it (6 times in 7)."""
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        page, session = tab.page, tab.session
+        for attempt in range(3):
+            page.get_by_role("button", name="Save to gallery", exact=True).click()
+            dialog = page.get_by_role("dialog")
+            name = f"fast fill {attempt}"
+            dialog.get_by_label("Name", exact=True).fill(name)  # no pause between the fields, nor before Save
+            dialog.get_by_label("Description", exact=True).fill(f"typed just before the tags ({attempt})")
+            dialog.get_by_label("Tags (comma-separated)", exact=True).fill("fast, fill")
+            dialog.get_by_role("button", name="Save", exact=True).click()
+            _wait(lambda: session.gallery_id is not None and app.store.get_level(session.gallery_id)["name"] == name)
+            saved = app.store.get_level(session.gallery_id)
+            assert (saved["description"], saved["tags"]) == (f"typed just before the tags ({attempt})",
+                                                             ["fast", "fill"])
+            page.get_by_role("dialog").wait_for(state="detached", timeout=10_000)
+        tab.assert_local_only()
+    finally:
+        tab.close()

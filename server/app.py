@@ -190,7 +190,10 @@ class App:
         self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir(), seed_dir=None)
         self.warmup.prepend("the gallery's levels", lambda: self.store.seed(REPO_LEVELS))
         self._start_recordings()
-        link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
+        from server.recordings.replay import open_best_run
+
+        link = GalleryLink(self.store, self.recorder if self.config.record else None,  # None: keeps no new runs
+                           open_replay=open_best_run)
         link.attach(self.manager)
         if link.runs is not None:
             link.runs.remove_orphans()

@@ -18,7 +18,8 @@ import collections
 import logging
 import secrets
 import threading
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -32,9 +33,6 @@ from server.play.scheduler import StepPlan
 from server.play.steps import DEFAULT_CLOCKWISE, PLAY_KEYS, action_from_keys, stepper_for
 from server.play.warmup import PREPARING
 
-if TYPE_CHECKING:  # annotations only: the manager imports this module
-    from server.play.manager import SessionManager
-
 __all__ = ["RESULT_TEXT", "START_HINT", "Controller", "PlayListener", "Session", "StepPlan", "episode_end"]
 
 log = logging.getLogger(__name__)
@@ -45,10 +43,26 @@ MAX_FIELDS = 32  # text fields taken from one dialog (set_fields)
 START_HINT = "Press Space or an arrow key to start"  # on the canvas while a play waits for the player (mode "ready")
 
 
+class SessionHost(Protocol):
+    """What a session needs of its manager (server.play.manager.SessionManager is one; it imports this module, so
+    this one names only the part it uses)."""
+
+    editor_factory: Callable | None
+    on_session_gui: Callable[[Session], None] | None
+    on_play_end: Callable[[Session, str, int, float], None] | None
+    scheduler: Any  # server.play.scheduler.PlayScheduler: add(), wake()
+    encoder: Any  # concurrent.futures.Executor of the frame encoders
+    warmup: Any  # server.play.warmup.WarmUp or None
+
+    def notify(self, event: str, *args) -> None: ...
+
+    def preparing(self) -> str | None: ...
+
+
 class Session(PlayLoop):
     """One tab. Build with SessionManager; `client` is a viser ClientHandle (or a test double with .scene/.gui)."""
 
-    def __init__(self, client, manager: SessionManager, level=None, size: str = "m"):
+    def __init__(self, client, manager: SessionHost, level=None, size: str = "m"):
         editor_factory = manager.editor_factory or default_editor_factory()
         self.client = client
         self.manager = manager

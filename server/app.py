@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import socket
+import sys
 import threading
 import time
 from pathlib import Path
@@ -250,7 +251,10 @@ class App:
             log.info("removed %d old drafts", len(removed))
         DraftLink(self.drafts).attach(self.manager)
 
-    def stop(self) -> None:
+    def stop(self, compile_timeout: float = 120.0) -> bool:
+        """Shut down: sessions, drafts, recordings, training, then (after waiting up to `compile_timeout` s for a
+        background compile under way) the side server and viser. Returns False if a compile still runs: XLA cannot
+        stop one midway, and the caller then ends the process itself (serve)."""
         from server.play import steps
 
         if self.warmup is not None:
@@ -263,7 +267,8 @@ class App:
             self.recorder.close()  # finish recordings of plays cut short by the shutdown
         if self.training is not None:
             self.training.close()
-        if not steps.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
+        compiled = steps.wait_for_compiles(timeout=compile_timeout)
+        if not compiled and compile_timeout > 0:  # a compile cut off by interpreter exit aborts the process
             log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
@@ -277,6 +282,7 @@ class App:
                 self.viser.stop()
         if self._socket is not None:
             self._socket.close()
+        return compiled
 
 
 def _megabytes(value: int | None) -> int | None:
@@ -315,5 +321,12 @@ def serve(args) -> int:
     except KeyboardInterrupt:
         pass
     print("Shutting down...", flush=True)
-    app.stop()
+    if not app.stop(compile_timeout=0.0):
+        # A Ctrl+C during the warm-up: everything is closed and written, but XLA cannot stop the compile under way
+        # (waiting for it took ~10 s), and an interpreter exit under a running compile aborts the process. So the
+        # process ends here, at once and cleanly; the compile is simply not finished (nothing of it is kept).
+        print("(the compile under way is abandoned)", flush=True)
+        logging.shutdown()
+        sys.stderr.flush()
+        os._exit(0)
     return 0

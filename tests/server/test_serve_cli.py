@@ -101,3 +101,30 @@ def test_make_serve_passes_args_to_the_server():
     out = subprocess.run(["make", "-n", "serve", "ARGS=--port 9000 --data /tmp/k"], cwd=ROOT, capture_output=True,
                          text=True, timeout=30, check=True).stdout
     assert ".venv/bin/kinetix serve --port 9000 --data /tmp/k\n" in out, out
+
+
+def test_ctrl_c_during_the_warm_up_exits_at_once_and_jax_tries_no_missing_platform(tmp_path):
+    """A Ctrl+C while the first start compiles (or fills the gallery) closes everything and ends the process without
+    waiting for the compile under way (it took ~10 s); JAX tries only the platforms present, so no start prints
+    "Unable to initialize backend 'tpu'"."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env.pop("JAX_PLATFORMS", None)
+    process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--data", str(tmp_path)],
+                               cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in process.stdout:
+            lines.append(line)
+            if line.startswith("Compiling the physics"):
+                break
+        process.send_signal(signal.SIGINT)  # the warm-up has just begun: its first task is under way
+        rest = process.communicate(timeout=60)[0]
+        output = "".join(lines) + rest
+        assert process.returncode == 0, output
+        assert "Shutting down" in rest and "the compile under way is abandoned" in rest, output
+        after = rest.split("Shutting down", 1)[1]
+        assert " done in " not in after, "a warm-up task was waited for after Ctrl+C"
+        assert "Unable to initialize backend" not in output, output
+    finally:
+        if process.poll() is None:
+            process.kill()

@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke.",
                "stopped": "Stopped."}
+SNAP_PIXELS = 6  # on screen: how close the pointer must come to a feature to snap to it (server.editor.gestures)
 MAX_FIELDS = 32  # text fields taken from one dialog (set_fields)
 START_HINT = "Press Space or an arrow key to start"  # on the canvas while a play waits for the player (mode "ready")
 
@@ -387,6 +388,8 @@ class Session(PlayLoop):
         """The current frame as RGB (height, width, 3) uint8 at the canvas size."""
         self._view = self.canvas()
         if self.mode == "edit":
+            if hasattr(type(self.editor), "snap_radius") or "snap_radius" in vars(self.editor):
+                self.editor.snap_radius = SNAP_PIXELS / self._view.scale  # the same few pixels at any canvas size
             level = self.editor.level_file().level
             overlay = self.editor.overlay()
             message = getattr(overlay, "message", None) or self._message

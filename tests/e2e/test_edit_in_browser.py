@@ -175,3 +175,54 @@ def test_a_size_refusal_message_is_readable_clear_of_the_gizmo_and_goes_with_mov
         tab.assert_local_only()
     finally:
         tab.close()
+
+
+def test_a_hinge_snaps_only_from_a_few_pixels_and_no_guide_stays_after_it(browser, app):
+    """A hinge clicked 10 pixels below the top of a circle stays where it was clicked (it was moved to the top:
+    the snap radius was 0.08 m, 11 pixels here); one clicked 2 pixels from the top snaps to it, shows the ring of
+    what it snapped to, and no guide line stays on the canvas after the edit."""
+    from server.editor import selection as sel
+
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        page, editor = tab.page, tab.session.editor
+        box = canvas_box(page)
+        page.get_by_role("button", name="New level", exact=True).click()
+        _wait(lambda: len(editor.spec.bodies) == 4)
+        page.get_by_role("button", name="Rect", exact=True).click()
+        _wait(lambda: editor.tool == "rectangle")
+        tab.drag((1.5, 0.9), (2.5, 1.6))
+        page.get_by_role("button", name="Circle", exact=True).click()
+        _wait(lambda: editor.tool == "circle" and len(editor.spec.bodies) == 5)
+        tab.drag((2.0, 1.2), (2.2, 1.2))
+        _wait(lambda: len(editor.spec.bodies) == 6)
+        circle = editor.spec.bodies[5]
+        top = (circle.position[0], circle.position[1] + circle.radius)
+        pixels_per_metre = tab.xy(1.0, 0.0)[0] - tab.xy(0.0, 0.0)[0]
+        editor.grid = 0.0  # the grid off: only the features snap
+        page.get_by_role("button", name="Hinge", exact=True).click()
+        _wait(lambda: editor.tool == "revolute")
+
+        page.mouse.click(*tab.xy(top[0], top[1] - 10 / pixels_per_metre))  # 10 pixels below the top
+        _wait(lambda: len(editor.spec.joints) == 1)
+        at = sel.joint_point(editor.spec, editor.spec.joints[0])
+        assert abs(at[1] - top[1]) * pixels_per_metre > 7, f"snapped from 10 pixels away to {at} (top {top})"
+
+        page.keyboard.press("Control+z")
+        _wait(lambda: not editor.spec.joints)
+        page.mouse.click(*tab.xy(top[0] + 1 / pixels_per_metre, top[1] - 2 / pixels_per_metre))  # 2 pixels off
+        _wait(lambda: len(editor.spec.joints) == 1)
+        at = sel.joint_point(editor.spec, editor.spec.joints[0])
+        assert at == pytest.approx(top, abs=1e-6), "a click right by the circle's top snaps to it"
+        page.wait_for_timeout(700)
+        shot = _pixels(tab.canvas_png(round(box["y"]), round(box["height"]), round(box["x"] + box["width"])))
+        guide = (np.abs(shot - np.array([255, 0, 160])).max(axis=2) < 60)
+        ys, xs = np.nonzero(guide)
+        assert len(xs), "the ring of the point it snapped to is shown"
+        ring = 0.05 * pixels_per_metre + 4  # the ring's radius (server.play.draw) and its line
+        cx, cy = tab.xy(*top)
+        assert (np.hypot(xs + 0.5 - cx, ys + 0.5 - (cy - box["y"])) <= ring + 3).all(), \
+            "a snap guide line is still on the canvas after the edit"
+        tab.assert_local_only()
+    finally:
+        tab.close()

@@ -163,3 +163,39 @@ def test_the_best_run_is_the_play_that_set_the_best_time_a_race_win_included(bro
         tab.assert_local_only()
     finally:
         tab.close()
+
+
+def test_notices_leave_the_race_banner_and_the_middle_banner_clear(browser, app):
+    from kinetix.agents.policy import load_policy
+    from server.agents.play import observing_env, race_banner_box
+
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        session = _open(tab, f"?level={_car_right(app, 'car right (race notices)')}")
+        _wait(lambda: session.gallery_id is not None)
+        noop = load_policy("noop", observing_env(session.editor.level_file().size))
+        app.agents.race(session, policy=noop)
+        _wait(lambda: session.mode == "ready")  # "Press Space or an arrow key to start" on the race's banner
+        for title in ("Saved to the gallery", "Something else", "And a third notice"):
+            session.client.add_notification(title, "Share it: /?level=abc " * 4, auto_close_seconds=30.0)
+        _wait(lambda: tab.page.locator(".mantine-Notification-root").count() >= 3)
+        time.sleep(1.0)  # let the notices slide in
+        notices = tab.page.evaluate("""() => [...document.querySelectorAll('.mantine-Notification-root')]
+            .map(e => e.getBoundingClientRect()).filter(r => r.height > 0)
+            .map(r => [r.x, r.y, r.x + r.width, r.y + r.height])""")
+        root = tab.page.evaluate("""() => { const r = document.querySelector('.mantine-Notifications-root')
+            .getBoundingClientRect(); return [r.x, r.y, r.x + r.width, r.y + r.height]; }""")
+        box = canvas_box(tab.page)
+        view = session._view
+        scale = box["height"] / view.height
+        left, top, right, bottom = race_banner_box(view.width, view.height)
+        banner = [box["x"] + left * scale, box["y"] + top * scale, box["x"] + right * scale, box["y"] + bottom * scale]
+        middle = box["y"] + box["height"] / 2 - 36 * scale  # a one-line banner at mid-height (server.play.draw)
+        assert notices
+        for x0, y0, x1, y1 in notices:
+            visible_bottom = min(y1, root[3])  # the stack scrolls: what lies below its box is not shown
+            assert visible_bottom <= banner[1] or y0 >= banner[3] or x1 <= banner[0] or x0 >= banner[2], \
+                f"a notice covers the race banner: {notices}, banner {banner}"
+            assert visible_bottom <= middle, f"a notice reaches the middle banner: {notices}, root {root}"
+    finally:
+        tab.close()

@@ -135,6 +135,7 @@ class App:
         # (software WebGL): 140 ms per render with them and 30 frames/s without, key-to-frame p50 114 -> 30 ms.
         self.viser.scene.configure_default_lights(enabled=False, cast_shadow=False)
         self.viser.scene.configure_environment_map(hdri=None)
+        forget_background_clear(self.viser)
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
                                       editor_factory=self.config.editor_factory,
                                       initial_level=self._initial_level(), warmup=self.warmup)
@@ -283,6 +284,23 @@ class App:
         if self._socket is not None:
             self._socket.close()
         return compiled
+
+
+def forget_background_clear(server) -> None:
+    """Drop the "no background image" that viser's start-up (scene.reset) leaves in the state every new client is sent.
+
+    A new tab gets that state from viser's shared buffer while its own messages, the session's first frames among
+    them, come from its own buffer at the same time: the clear often came last and hid them, so the canvas stayed
+    blank until the next frame, about a second later on a loaded machine (issue 37: Watch agent showed a blank
+    canvas for ~1.2 s). Every tab draws its own background, so the shared one has nothing to clear. viser 1.1.1 has
+    no public call for this; if its internals differ, nothing is removed (the old behaviour)."""
+    try:
+        from viser._messages import BackgroundImageMessage
+
+        buffer = server._websock_server.get_message_buffer()
+        buffer.remove_from_buffer(lambda message: isinstance(message, BackgroundImageMessage))
+    except (ImportError, AttributeError):
+        log.debug("viser's start-up background clear stays", exc_info=True)
 
 
 def _megabytes(value: int | None) -> int | None:

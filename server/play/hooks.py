@@ -3,7 +3,6 @@ overlays) and Controller (chooses the actions instead of the keyboard: agents). 
 
 from __future__ import annotations
 
-import threading
 from typing import Any, Protocol
 
 import numpy as np
@@ -17,7 +16,7 @@ class Tab(Protocol):
 
     client: Any  # viser's ClientHandle (None once the tab is gone)
     editor: Any  # the tab's editor (server.editor.Editor or a play-only stand-in)
-    lock: threading.RLock
+    lock: Any  # the session's threading.RLock: listeners run holding it
     mode: str  # "edit" | "ready" | "play" | "paused" | "ended" | "replay"
     controller: Controller | None
     gallery_id: str | None

@@ -9,33 +9,8 @@
 // Here each frame is decoded off the main thread (createImageBitmap) and drawn with one drawImage; frames are shown
 // in order and a frame is dropped only when a newer one is already on screen. viser's canvas stays underneath
 // for pointer input (the overlay ignores the pointer), and every other message still goes to viser.
-//
-// The decoding and drawing happen in a worker of ours on the overlay's OffscreenCanvas, which the browser shows
-// without the page's main thread: while a tab opens, that thread is busy for a second or more building viser's
-// panel, and a frame decoded on it waited that long to be drawn (a blank canvas for ~1.2 s before the level
-// appeared, issue 37). Browsers without OffscreenCanvas decode and draw here, as before.
 (function () {
   "use strict";
-  // The worker's code: frames in order; a frame older than the newest drawn one (or than a clear) is dropped.
-  const DRAWER = `"use strict";
-let canvas = null, context = null, shown = 0;
-onmessage = async (event) => {
-  const m = event.data;
-  if (m.canvas) { canvas = m.canvas; context = canvas.getContext("2d", { alpha: false }); return; }
-  if (m.clear) { shown = Math.max(shown, m.clear); return; }
-  let bitmap;
-  try { bitmap = await createImageBitmap(m.blob); }
-  catch (error) { postMessage({ seq: m.seq, error: String(error) }); return; }
-  if (!context || m.seq < shown) { bitmap.close(); return; }
-  const resized = canvas.width !== bitmap.width || canvas.height !== bitmap.height;
-  if (resized) { canvas.width = bitmap.width; canvas.height = bitmap.height; }
-  context.drawImage(bitmap, 0, 0);
-  bitmap.close();
-  shown = m.seq;
-  postMessage({ seq: m.seq, acks: m.acks, resized });
-};`;
-  const offscreen = typeof HTMLCanvasElement.prototype.transferControlToOffscreen === "function" &&
-    typeof OffscreenCanvas === "function";
   const state = {
     overlay: null, // our <canvas>
     target: null, // viser's canvas it covers
@@ -109,34 +84,10 @@ onmessage = async (event) => {
     target.insertAdjacentElement("afterend", overlay);
     state.overlay = overlay;
     state.target = target;
-    if (offscreen) {
-      const canvas = overlay.transferControlToOffscreen();
-      drawer().postMessage({ canvas }, [canvas]);
-    } else {
-      state.context = overlay.getContext("2d", { alpha: false });
-    }
+    state.context = overlay.getContext("2d", { alpha: false });
     resizes.observe(target);
     place();
     return true;
-  }
-
-  let drawWorker = null; // ours, drawing on the overlay (created with the first overlay)
-  function drawer() {
-    if (drawWorker) return drawWorker;
-    const worker = new ViserWorker(URL.createObjectURL(new Blob([DRAWER], { type: "text/javascript" })));
-    worker.onmessage = (event) => {
-      const m = event.data;
-      if (m.error) {
-        console.warn("kinetix: a frame did not decode", m.error);
-        return;
-      }
-      state.shown = Math.max(state.shown, m.seq);
-      state.drawn += 1;
-      if (m.resized) place();
-      for (const listener of state.listeners) listener(m.seq, m.acks);
-    };
-    drawWorker = worker;
-    return worker;
   }
 
   function draw(seq, bitmap, acks) {
@@ -191,7 +142,6 @@ onmessage = async (event) => {
     }
     if (cleared) {
       state.shown = ++state.latest; // a clear supersedes every frame in flight
-      if (drawWorker) drawWorker.postMessage({ clear: state.shown });
       setHidden(true);
       return;
     }
@@ -199,12 +149,7 @@ onmessage = async (event) => {
     setHidden(false);
     const seq = ++state.latest;
     const acks = state.listeners.length ? acksOf(messages) : [];
-    const blob = new Blob([frame.rgb_data], { type: "image/" + frame.format });
-    if (offscreen) {
-      if (attach()) drawer().postMessage({ seq, blob, acks });
-      return;
-    }
-    createImageBitmap(blob).then(
+    createImageBitmap(new Blob([frame.rgb_data], { type: "image/" + frame.format })).then(
       (bitmap) => draw(seq, bitmap, acks),
       (error) => console.warn("kinetix: a frame did not decode", error),
     );

@@ -97,8 +97,11 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
         card.locator(".up").click()
         _wait(lambda: app.store.stats(level_id)["votes_up"] == 1)
         card = gallery.locator("article.card", has_text="E2E <i>falling</i> win")
+        # The page replaces the card once the vote's answer is in (a click on the old card voted up again).
+        card.locator(".up.mine").wait_for(timeout=30_000)
         card.locator(".up").click()  # toggles the vote off: value 0
         _wait(lambda: app.store.stats(level_id)["votes_up"] == 0)
+        card.locator(".up:not(.mine)").wait_for(timeout=30_000)
         gallery.locator("article.card", has_text="E2E <i>falling</i> win").locator(".up").click()
         _wait(lambda: app.store.stats(level_id)["votes_up"] == 1)
         assert gallery.locator("#status").inner_text() == ""  # no "Vote failed"

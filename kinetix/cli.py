@@ -427,6 +427,10 @@ def main(argv: list[str] | None = None) -> int:
         request_cpu_devices(args.devices)
         if getattr(args, "loop_only", False):  # the benches' interactive-loop child (interactive_loops)
             confine_to_one_core()
+    if command.uses_jax:  # before JAX starts: it tries only the platforms present (no "Unable to ... 'tpu'")
+        from kinetix.devices import use_present_platforms
+
+        use_present_platforms()
     if getattr(args, "backend", None) is not None:  # before JAX starts: "cpu" hides the other backends
         from kinetix.devices import BackendError, select_backend
 

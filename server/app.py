@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import socket
+import sys
 import threading
 import time
 from pathlib import Path
@@ -151,6 +152,7 @@ class App:
         # (software WebGL): 140 ms per render with them and 30 frames/s without, key-to-frame p50 114 -> 30 ms.
         self.viser.scene.configure_default_lights(enabled=False, cast_shadow=False)
         self.viser.scene.configure_environment_map(hdri=None)
+        forget_background_clear(self.viser)
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
                                       editor_factory=self.config.editor_factory,
                                       initial_level=self._initial_level(), warmup=self.warmup)
@@ -218,7 +220,10 @@ class App:
 
         self.warmup.prepend("the gallery's levels", seed)
         self._start_recordings()
-        link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
+        from server.recordings.replay import open_best_run
+
+        link = GalleryLink(self.store, self.recorder if self.config.record else None,  # None: keeps no new runs
+                           open_replay=open_best_run)
         link.attach(self.manager)
         if link.runs is not None:
             link.runs.remove_orphans()
@@ -281,7 +286,10 @@ class App:
             log.info("removed %d old drafts", len(removed))
         DraftLink(self.drafts).attach(self.manager)
 
-    def stop(self) -> None:
+    def stop(self, compile_timeout: float = 120.0) -> bool:
+        """Shut down: sessions, drafts, recordings, training, then (after waiting up to `compile_timeout` s for a
+        background compile under way) the side server and viser. Returns False if a compile still runs: XLA cannot
+        stop one midway, and the caller then ends the process itself (serve)."""
         from server.play import steps
 
         if self.warmup is not None:
@@ -294,7 +302,8 @@ class App:
             self.recorder.close()  # finish recordings of plays cut short by the shutdown
         if self.training is not None:
             self.training.close()
-        if not steps.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
+        compiled = steps.wait_for_compiles(timeout=compile_timeout)
+        if not compiled and compile_timeout > 0:  # a compile cut off by interpreter exit aborts the process
             log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
@@ -308,6 +317,24 @@ class App:
                 self.viser.stop()
         if self._socket is not None:
             self._socket.close()
+        return compiled
+
+
+def forget_background_clear(server) -> None:
+    """Drop the "no background image" that viser's start-up (scene.reset) leaves in the state every new client is sent.
+
+    A new tab gets that state from viser's shared buffer while its own messages, the session's first frames among
+    them, come from its own buffer at the same time: the clear often came last and hid them, so the canvas stayed
+    blank until the next frame, about a second later on a loaded machine (issue 37: Watch agent showed a blank
+    canvas for ~1.2 s). Every tab draws its own background, so the shared one has nothing to clear. viser 1.1.1 has
+    no public call for this; if its internals differ, nothing is removed (the old behaviour)."""
+    try:
+        from viser._messages import BackgroundImageMessage
+
+        buffer = server._websock_server.get_message_buffer()
+        buffer.remove_from_buffer(lambda message: isinstance(message, BackgroundImageMessage))
+    except (ImportError, AttributeError):
+        log.debug("viser's start-up background clear stays", exc_info=True)
 
 
 def _megabytes(value: int | None) -> int | None:
@@ -348,5 +375,12 @@ def serve(args) -> int:
     except KeyboardInterrupt:
         pass
     print("Shutting down...", flush=True)
-    app.stop()
+    if not app.stop(compile_timeout=0.0):
+        # A Ctrl+C during the warm-up: everything is closed and written, but XLA cannot stop the compile under way
+        # (waiting for it took ~10 s), and an interpreter exit under a running compile aborts the process. So the
+        # process ends here, at once and cleanly; the compile is simply not finished (nothing of it is kept).
+        print("(the compile under way is abandoned)", flush=True)
+        logging.shutdown()
+        sys.stderr.flush()
+        os._exit(0)
     return 0

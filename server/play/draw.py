@@ -44,6 +44,13 @@ THRUSTER_KEYS = ["1", "2"]
 PREVIEW = (255, 140, 0)
 SELECTION = (0, 150, 255)
 GUIDE = (255, 0, 160)
+# The editor's messages ("no polygon left: ..."): dark red on a white box, readable over any part of the level (red
+# on the dark floor was not), centred at the bottom, at least MESSAGE_CLEAR pixels from the left and right edges:
+# viser draws its axes gizmo in the canvas's bottom-left corner (about 60 x 60 pixels).
+MESSAGE_INK = (150, 0, 0)
+MESSAGE_FILL = (255, 255, 255)
+MESSAGE_CLEAR = 80
+MESSAGE_SIZE = 13
 
 
 @functools.lru_cache(maxsize=4)
@@ -165,7 +172,7 @@ def _draw_text(image: Image.Image, view: View, *, hud: str, banner: str, message
                 x += _text(image, (x, y), text, TEXT, 13) + 10
         y += LEGEND_ROW
     if message:
-        _text(image, (ox + 6, view.height - view.origin[1] - 20 - top), message, (200, 0, 0), 13)
+        _message_box(draw, image, view, message, top)
     if banner:
         big = _font(22)
         lines = banner.split("\n")
@@ -175,6 +182,43 @@ def _draw_text(image: Image.Image, view: View, *, hud: str, banner: str, message
         for n, line in enumerate(lines):
             w = draw.textlength(line, font=big)
             _text(image, (view.width / 2 - w / 2, box_top + 8 + 28 * n), line, (20, 20, 20), 22)
+
+
+def message_lines(message: str, width: float) -> list[str]:
+    """`message` broken at spaces into lines of at most `width` pixels (a longer word gets a line of its own)."""
+    font = _font(MESSAGE_SIZE)
+    lines: list[str] = []
+    for paragraph in message.split("\n"):
+        line = ""
+        for word in paragraph.split(" "):
+            candidate = f"{line} {word}" if line else word
+            if line and font.getlength(candidate) > width:
+                lines.append(line)
+                line = word
+            else:
+                line = candidate
+        lines.append(line)
+    return lines
+
+
+def message_box(view: View, message: str) -> tuple[list[str], tuple[int, int, int, int]]:
+    """The lines of an editor message and the box (left, top, right, bottom, in view pixels) it is drawn in."""
+    lines = message_lines(message, max(80, view.width - 2 * MESSAGE_CLEAR - 16))
+    font = _font(MESSAGE_SIZE)
+    text_width = max(font.getlength(line) for line in lines)
+    row = MESSAGE_SIZE + 5
+    width, height = math.ceil(text_width) + 16, row * len(lines) + 10
+    left = max(0, (view.width - width) // 2)
+    bottom = view.height - 12
+    return lines, (left, bottom - height, left + width, bottom)
+
+
+def _message_box(draw: ImageDraw.ImageDraw, image: Image.Image, view: View, message: str, top: int) -> None:
+    lines, (left, box_top, right, bottom) = message_box(view, message)
+    draw.rounded_rectangle([left, box_top - top, right, bottom - top], radius=4, fill=MESSAGE_FILL,
+                           outline=MESSAGE_INK)
+    for n, line in enumerate(lines):
+        _text(image, (left + 8, box_top - top + 5 + (MESSAGE_SIZE + 5) * n), line, MESSAGE_INK, MESSAGE_SIZE)
 
 
 _ARROWS = {"→": 0.0, "↑": 90.0, "←": 180.0, "↓": 270.0}  # key name -> direction the drawn arrow points (degrees)

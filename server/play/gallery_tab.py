@@ -21,6 +21,7 @@ from __future__ import annotations
 import html
 import json
 import logging
+from collections.abc import Callable
 from urllib.parse import parse_qs
 
 from server.gallery.checks import StoreError
@@ -33,8 +34,11 @@ OPEN_LIST_SIZE = 50  # levels offered by "Open from gallery" (newest first); the
 
 
 class GalleryLink:
-    def __init__(self, store: Store, recorder=None):
+    def __init__(self, store: Store, recorder=None, open_replay: Callable[..., bool] | None = None):
         self.store = store
+        # `open_replay(session, path, title)` replays a recording in the tab (server.recordings.replay.open_best_run,
+        # given by server.app: recordings build on play, so play does not import them); None: no replays.
+        self.open_replay = open_replay
         # With the server's PlayRecorder, the best human solve of each level keeps its recording (runs.BestRuns);
         # without it (kinetix serve --no-record) the kept best runs can still be replayed.
         self.recorder = recorder
@@ -153,14 +157,12 @@ class GalleryLink:
 
     def replay_best_run(self, session, level_id: str) -> bool:
         """Replay the level's best run in the tab (`?level=<id>&mode=replay`); a notification if it has none."""
-        from server.recordings.replay import open_best_run
-
         path = self.runs.best_run_file(level_id) if self.runs is not None else None
-        if path is None:
+        if path is None or self.open_replay is None:
             session.client.add_notification("No best run yet", "Nobody has solved this level with a recording yet: "
                                             "play it!", color="yellow")
             return False
-        return open_best_run(session, path, f"the best run of {session.editor.spec.name or level_id}")
+        return self.open_replay(session, path, f"the best run of {session.editor.spec.name or level_id}")
 
     def record_play(self, session, result: str, steps: int, seconds: float) -> None:
         if session.gallery_id is None:  # an unsaved level has no gallery entry to count the play against

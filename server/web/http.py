@@ -29,7 +29,7 @@ from fastapi.staticfiles import StaticFiles
 from server.web.prefix import UnderPath, normalise
 from server.web.proxies import TrustedProxies
 from server.web.relay import relay_to_viser
-from server.web.security import LOCAL_HOSTS, WebSecurity
+from server.web.security import LOCAL_HOSTS, VISER_PAGE_CONTENT_SECURITY_POLICY, WebSecurity
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,8 @@ def inject(page: str) -> str:
     """The viser page with our frame display, key script and labels right after <head> (before viser's code).
 
     The paths are relative to the page, so a reverse proxy may serve the app under a path of its own."""
-    snippet = ('<script src="static/frames.js"></script><script src="static/keys.js"></script>'
+    snippet = ('<script src="static/passive.js"></script>'  # first: before any listener is added
+               '<script src="static/frames.js"></script><script src="static/keys.js"></script>'
                '<script src="static/labels.js"></script>')  # labels.js ties viser's labels to their inputs
     head = page.find("<head>")
     if head < 0:
@@ -73,7 +74,9 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def index() -> HTMLResponse:
-        return HTMLResponse(page, headers={"Cache-Control": "no-store"})
+        # viser's client needs a policy of its own (server.web.security); the middleware keeps a header already set.
+        return HTMLResponse(page, headers={"Cache-Control": "no-store",
+                                           "Content-Security-Policy": VISER_PAGE_CONTENT_SECURITY_POLICY})
 
     @app.websocket("/")
     async def viser_socket(socket: WebSocket) -> None:
@@ -132,6 +135,10 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 kind, code = event.get("type"), event.get("code")
                 if kind == "blur":
                     session.release_all_keys()
+                    continue
+                if kind == "fields":  # a dialog's text fields, sent before its button's click (keys.js)
+                    await asyncio.get_running_loop().run_in_executor(None, session.set_fields, event.get("values"))
+                    await socket.send_text(json.dumps({"type": "fields_ack", "id": event.get("id")}))
                     continue
                 if kind not in ("down", "up") or not isinstance(code, str):
                     continue

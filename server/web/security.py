@@ -45,6 +45,12 @@ CONTENT_SECURITY_POLICY = "; ".join([
     "form-action 'self'",
     "frame-ancestors 'self'",
 ])
+# viser's page (the editor at /) only: viser 1.1.1's client holds an Emscripten (embind) module, its splat sorter,
+# which builds its class constructors with `new Function(...)` as the client loads. Without 'unsafe-eval' every
+# load threw an uncaught EvalError (31 of 31 loads, issue 37); nothing of ours evaluates strings. The gallery page,
+# the API and the static files keep the policy above.
+VISER_PAGE_CONTENT_SECURITY_POLICY = CONTENT_SECURITY_POLICY.replace(
+    "'wasm-unsafe-eval'", "'unsafe-eval' 'wasm-unsafe-eval'")
 # FastAPI's /docs (Swagger UI) and /redoc pages load their code, styles, fonts and icon from public CDNs.
 DOCS_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")
 DOCS_CONTENT_SECURITY_POLICY = "; ".join([

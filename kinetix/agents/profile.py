@@ -24,9 +24,9 @@ import jax2d
 from kinetix.agents import curricula, distributions
 from kinetix.agents.ppo import TrainConfig, Transition, make_train, ppo_update
 from kinetix.agents.rollout import fresh_state
-from kinetix.agents.train import RANDOM_DENSE_REWARD
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.level import WALLS_SOLVER, size_class
+from kinetix.level_source import RANDOM_DENSE_REWARD
 
 
 def _best_of(fn: Callable, *args, runs: int = 3) -> tuple[float, float]:
@@ -70,7 +70,8 @@ def profile(size: str = "s", num_envs: int = 512, num_steps: int = 64) -> dict[s
     @jax2d.jit
     def forward_only(net_params, obs):
         def one(total, _):  # the carry enters the input, so the T passes are not folded into one
-            outputs, value = network.apply({"params": net_params}, jax.tree.map(lambda x: x + total * 0, obs))
+            moved = jax.tree.map(lambda x: x + (total * 0).astype(x.dtype), obs)
+            outputs, value = network.apply({"params": net_params}, moved)
             return total + value.mean() + outputs.mean(), None
 
         return jax.lax.scan(one, jnp.zeros(()), None, length=T)[0]

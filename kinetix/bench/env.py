@@ -62,9 +62,13 @@ def default_level_paths(sizes: list[str]) -> list[Path]:
 
 def _make_env(level_file):
     from kinetix.env import EnvConfig, EnvParams, make_env
+    from kinetix.level import solver_for
 
+    # The solver every caller that knows its levels picks (the server, `kinetix train`, `kinetix bench engine
+    # --level`), and what the public Kinetix's env does by default (num_static_fixated_polys=4): the walls one
+    # when polygon slots 0-3 are static. The plain SolverConfig() made the env at s 1.4x slower (docs/engine.md).
     config = EnvConfig(size=level_file.size, observation="entity", action="multi_discrete",
-                       frame_skip=level_file.params.frame_skip)
+                       frame_skip=level_file.params.frame_skip, solver=solver_for(level_file.level))
     return make_env(config, level_file), EnvParams.from_level_params(level_file.params)
 
 

@@ -3,7 +3,7 @@
 What is measured, per level (one per size class by default):
 - batched rollout (training): B copies of the environment under vmap, `steps` agent steps inside one
   jitted lax.scan, with symbolic-entity observations, uniformly random multi-discrete actions and
-  auto-reset; steps_per_s = B * steps / seconds of one run (the median of 5 when short, see
+  auto-reset, stepped with the solver the level allows (kinetix.level.solver_for, see _make_env); steps_per_s = B * steps / seconds of one run (the median of 5 when short, see
   bench.engine.timed_runs), excluding compilation; the batch is split over the CPU devices
   (`--devices`, default one per core) when they divide it, each device stepping its own
   environments (kinetix.devices.per_device);

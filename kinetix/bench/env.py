@@ -3,10 +3,10 @@
 What is measured, per level (one per size class by default):
 - batched rollout (training): B copies of the environment under vmap, `steps` agent steps inside one
   jitted lax.scan, with symbolic-entity observations, uniformly random multi-discrete actions and
-  auto-reset, stepped with the solver the level allows (kinetix.level.solver_for, see _make_env); steps_per_s = B * steps / seconds of one run (the median of 5 when short, see
-  bench.engine.timed_runs), excluding compilation; the batch is split over the CPU devices
-  (`--devices`, default one per core) when they divide it, each device stepping its own
-  environments (kinetix.devices.per_device);
+  auto-reset, stepped with the solver the level allows (kinetix.level.solver_for, see _make_env);
+  steps_per_s = B * steps / seconds of one run (the median of 5 when short, see bench.engine.timed_runs),
+  excluding compilation; the batch is split over the CPU devices (`--devices`, default one per core)
+  when they divide it, each device stepping its own environments (kinetix.devices.per_device);
 - Python loop (the interactive path): one env step per call at batch 1, blocking on each result, with
   state and params packed in one buffer each (`env.step_compact`), and the plain pytree `env.step`,
   timed in a child process with one device on one core (kinetix.bench.engine.interactive_loops);

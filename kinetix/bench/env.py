@@ -66,7 +66,7 @@ def _make_env(level_file):
 
     # The solver every caller that knows its levels picks (the server, `kinetix train`, `kinetix bench engine
     # --level`), and what the public Kinetix's env does by default (num_static_fixated_polys=4): the walls one
-    # when polygon slots 0-3 are static. The plain SolverConfig() made the env at s 1.4x slower (docs/engine.md).
+    # when polygon slots 0-3 are static (env s 16: 9.4k -> 12.1-12.7k steps/s; docs/engine.md, issue 35).
     config = EnvConfig(size=level_file.size, observation="entity", action="multi_discrete",
                        frame_skip=level_file.params.frame_skip, solver=solver_for(level_file.level))
     return make_env(config, level_file), EnvParams.from_level_params(level_file.params)

@@ -47,7 +47,7 @@ from jax2d.state import SimParams, SolverConfig
 from kinetix import actions as actions_module
 from kinetix import observations
 from kinetix.actions import Box, DictSpace, Space
-from kinetix.goal import goal_distance, green_touches_blue, green_touches_red
+from kinetix.goal import goal_distance, touch_outcome
 from kinetix.level import Level, LevelError, LevelFile, LevelParams, SizeClass, size_class
 
 ResetFn = Callable[[jax.Array], Level]
@@ -194,9 +194,12 @@ class KinetixEnv:
     def step(self, key: jax.Array, state: EnvState, action, params: EnvParams | None = None):
         """(obs, state, reward, terminated, truncated, info); on episode end obs and state come from a reset."""
         next_state, reward, terminated, truncated, info = self.transition(state, action, params)
-        fresh = self.initial_state(key, params)
-        next_state = _select(terminated | truncated, fresh, next_state)
-        return self.observe(next_state), next_state, reward, terminated, truncated, info
+        with jax.named_scope("env_reset"):
+            fresh = self.initial_state(key, params)
+            next_state = _select(terminated | truncated, fresh, next_state)
+        with jax.named_scope("env_observe"):
+            obs = self.observe(next_state)
+        return obs, next_state, reward, terminated, truncated, info
 
     # ------------------------------------------------------------ one scene from a Python loop
 
@@ -242,28 +245,34 @@ class KinetixEnv:
         """(next_state, reward, terminated, truncated, info): one agent step, no observation, no reset."""
         params = self.default_params if params is None else params
         level = state.level
-        motor, thrust = actions_module.level_actions(level, action, self.config.action)
+        with jax.named_scope("env_actions"):
+            motor, thrust = actions_module.level_actions(level, action, self.config.action)
 
         def physics_step(carry, _):
             sim, ended, won, lost, frozen = carry
-            new_sim = jax2d.step(sim, params.sim, motor, thrust, self.config.solver)
-            after = dataclasses.replace(level, sim=new_sim)
-            lose = green_touches_red(after)
-            win = green_touches_blue(after) & ~lose  # losing dominates a simultaneous win
-            won, lost = won | (~ended & win), lost | (~ended & lose)
-            frozen = frozen + jnp.where(ended, 0, new_sim.frozen)
-            sim = _select(ended, sim, new_sim)  # frozen from the first terminating substep on
+            with jax.named_scope("env_physics"):
+                new_sim = jax2d.step(sim, params.sim, motor, thrust, self.config.solver)
+            with jax.named_scope("env_goal"):
+                after = dataclasses.replace(level, sim=new_sim)
+                blue, lose = touch_outcome(after)
+                win = blue & ~lose  # losing dominates a simultaneous win
+                won, lost = won | (~ended & win), lost | (~ended & lose)
+                frozen = frozen + jnp.where(ended, 0, new_sim.frozen)
+            with jax.named_scope("env_freeze"):
+                sim = _select(ended, sim, new_sim)  # frozen from the first terminating substep on
             return (sim, ended | win | lose, won, lost, frozen), None
 
         false = jnp.asarray(False)
         zero = jnp.zeros((), jnp.int32)
         (sim, _, won, lost, frozen), _ = jax.lax.scan(physics_step, (level.sim, false, false, false, zero), None,
                                                       length=self.config.frame_skip)
-        finite = _all_finite(sim)
-        next_level = _select(finite, dataclasses.replace(level, sim=sim), level)  # roll back a non-finite step
+        with jax.named_scope("env_finite"):
+            finite = _all_finite(sim)
+            next_level = _select(finite, dataclasses.replace(level, sim=sim), level)  # roll back a non-finite step
         won, lost = won & finite, lost & finite
 
-        distance = goal_distance(next_level).astype(jnp.float32)
+        with jax.named_scope("env_distance"):
+            distance = goal_distance(next_level).astype(jnp.float32)
         shaping = jnp.asarray(params.dense_reward_scale, jnp.float32) * (state.last_distance - distance)
         sparse = jnp.where(won, 1.0, 0.0) - jnp.where(lost, 1.0, 0.0)
         reward = jnp.where(finite, sparse + jnp.nan_to_num(shaping), 0.0).astype(jnp.float32)

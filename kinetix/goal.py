@@ -28,6 +28,19 @@ def _pair_touch(level: Level, role_x: int, role_y: int, tolerance: float) -> jax
     return jnp.any(pair & touching_slots(level.sim, tolerance))
 
 
+def touch_outcome(level: Level, tolerance: float = TOUCH_TOLERANCE) -> tuple[jax.Array, jax.Array]:
+    """(green touches blue, green touches red) from one read of the contacts: what the env checks after every
+    physics step (green_touches_blue and green_touches_red each read the contacts and the slots' roles again)."""
+    ra, rb = _slot_roles(level)
+    touching = touching_slots(level.sim, tolerance)
+
+    def touch(role_y: int) -> jax.Array:
+        pair = ((ra == ROLE_GREEN) & (rb == role_y)) | ((ra == role_y) & (rb == ROLE_GREEN))
+        return jnp.any(pair & touching)
+
+    return touch(ROLE_BLUE), touch(ROLE_RED)
+
+
 def green_touches_blue(level: Level, tolerance: float = TOUCH_TOLERANCE) -> jax.Array:
     return _pair_touch(level, ROLE_GREEN, ROLE_BLUE, tolerance)
 

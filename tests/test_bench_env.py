@@ -19,6 +19,28 @@ def test_project_stand_ins_have_the_size_they_stand_in_for():
         assert load_level(bench_env.REPO_DIR / "levels" / name).size.name == size
 
 
+def test_the_env_is_stepped_with_the_solver_its_level_allows():
+    """The walls solver (as the server and `kinetix train` pick it) for a level with static walls, the plain one for
+    a level with a moving body in polygon slots 0-3, which the walls solver would let through the walls."""
+    import dataclasses
+
+    import numpy as np
+
+    from jax2d import SolverConfig
+    from kinetix.level import WALLS_SOLVER
+
+    walled = load_level(bench_env.REPO_DIR / "levels" / bench_env.PROJECT_LEVELS["s"])
+    env, _ = bench_env._make_env(walled)
+    assert env.config.solver == WALLS_SOLVER
+    bodies = walled.level.sim.bodies
+    moving_floor = dataclasses.replace(bodies, inv_mass=np.asarray(bodies.inv_mass).copy())
+    moving_floor.inv_mass[0] = 1.0
+    sim = dataclasses.replace(walled.level.sim, bodies=moving_floor)
+    unwalled = dataclasses.replace(walled, level=dataclasses.replace(walled.level, sim=sim))
+    env, _ = bench_env._make_env(unwalled)
+    assert env.config.solver == SolverConfig()
+
+
 def test_tiny_benchmark_results_and_json_lines():
     level = load_level(bench_env.REPO_DIR / "levels" / bench_env.PROJECT_LEVELS["s"])
     # cold=False: compilations may come from the persistent cache, so a second test run is quick.

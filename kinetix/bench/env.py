@@ -3,10 +3,10 @@
 What is measured, per level (one per size class by default):
 - batched rollout (training): B copies of the environment under vmap, `steps` agent steps inside one
   jitted lax.scan, with symbolic-entity observations, uniformly random multi-discrete actions and
-  auto-reset; steps_per_s = B * steps / seconds of one run (the median of 5 when short, see
-  bench.engine.timed_runs), excluding compilation; the batch is split over the CPU devices
-  (`--devices`, default one per core) when they divide it, each device stepping its own
-  environments (kinetix.devices.per_device);
+  auto-reset, stepped with the solver the level allows (kinetix.level.solver_for, see _make_env);
+  steps_per_s = B * steps / seconds of one run (the median of 5 when short, see bench.engine.timed_runs),
+  excluding compilation; the batch is split over the CPU devices (`--devices`, default one per core)
+  when they divide it, each device stepping its own environments (kinetix.devices.per_device);
 - Python loop (the interactive path): one env step per call at batch 1, blocking on each result, with
   state and params packed in one buffer each (`env.step_compact`), and the plain pytree `env.step`,
   timed in a child process with one device on one core (kinetix.bench.engine.interactive_loops);
@@ -62,9 +62,13 @@ def default_level_paths(sizes: list[str]) -> list[Path]:
 
 def _make_env(level_file):
     from kinetix.env import EnvConfig, EnvParams, make_env
+    from kinetix.level import solver_for
 
+    # The solver every caller that knows its levels picks (the server, `kinetix train`, `kinetix bench engine
+    # --level`), and what the public Kinetix's env does by default (num_static_fixated_polys=4): the walls one
+    # when polygon slots 0-3 are static (env s 16: 9.4k -> 12.1-12.7k steps/s; docs/engine.md, issue 35).
     config = EnvConfig(size=level_file.size, observation="entity", action="multi_discrete",
-                       frame_skip=level_file.params.frame_skip)
+                       frame_skip=level_file.params.frame_skip, solver=solver_for(level_file.level))
     return make_env(config, level_file), EnvParams.from_level_params(level_file.params)
 
 

@@ -146,6 +146,24 @@ def test_touching_blue_and_red_at_once_is_a_loss(step_no_reset):
     assert bool(info["failed"]) and not bool(info["solved"])
 
 
+def test_touch_outcome_is_both_single_checks():
+    """The env's one-read goal check (kinetix.goal.touch_outcome) gives what green_touches_blue and
+    green_touches_red give, on every physics step of a ball falling onto a blue floor and onto a red one."""
+    from kinetix.goal import green_touches_blue, green_touches_red, touch_outcome
+
+    step = jax2d.jit(lambda s: jax2d.step(s, jax2d.SimParams(), jnp.zeros(1), jnp.zeros(1)))
+    seen = set()
+    for level in (ball_over_floor(ROLE_BLUE), ball_over_floor(ROLE_RED)):
+        sim = level.sim
+        for _ in range(20):
+            sim = step(sim)
+            now = dataclasses.replace(level, sim=sim)
+            blue, red = (bool(x) for x in touch_outcome(now))
+            assert (blue, red) == (bool(green_touches_blue(now)), bool(green_touches_red(now)))
+            seen.add((blue, red))
+    assert seen == {(False, False), (True, False), (False, True)}, seen  # every outcome was exercised
+
+
 def test_truncated_exactly_at_max_timesteps(step_no_reset):
     state = start(resting_ball())
     params = EnvParams(max_timesteps=10)

@@ -42,7 +42,9 @@ import numpy as np
 
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.math2d import take_rows
-from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
+from jax2d.narrow_phase import joint_connected, over_pairs_and_batch, pair_filter, step_reach
+from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
+from jax2d.state import SimParams
 
 # With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, at any
 # batch size: candidates and colourings are per scene, so its cost grows with the batch as the all-pairs
@@ -127,7 +129,7 @@ def capacities(layout: ContactLayout) -> list[int]:
 
 def boxes(b, speculative, reach=None) -> jax.Array:
     """(4, M?, *batch) lower x, lower y, upper x, upper y of every body (batch-last bodies), grown by
-    half the speculative distance and the body's reach in the step (step.step_reach; (N, *batch) or None)
+    half the speculative distance and the body's reach in the step (narrow_phase.step_reach; (N, *batch) or None)
     on each side, so two boxes overlap whenever the narrow phase could find a point (its margin is the
     speculative distance plus both reaches)."""
     pos, ang = b.position, b.angle  # (N, 2, *batch), (N, *batch)
@@ -190,12 +192,13 @@ def rows_for(layout: ContactLayout) -> tuple[int, int, int]:
     return rows, MAX_COLOURS, width
 
 
-def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: int, reach=None) -> Manifold:
+def collide_candidates(cand: Candidates, b, speculative, total: int, reach=None) -> Manifold:
     """Manifolds of the candidate rows (batch-last), padding rows empty; total = rows with padding. A pair's
-    margin is the speculative distance plus both bodies' reach (step.narrow_phase; reach None: zero)."""
+    margin is the speculative distance plus both bodies' reach (narrow_phase.narrow_phase; reach None: zero)."""
     P = b.vertices.shape[0]
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
     batch = pos.shape[2:]
+    mapped = functools.partial(over_pairs_and_batch, batch=batch)
     spec = jnp.broadcast_to(jnp.asarray(speculative, jnp.float32), batch)
     reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
 
@@ -207,21 +210,59 @@ def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: 
         t = functools.partial(take_rows, idx=i)
         if call == "pp":
             u = functools.partial(take_rows, idx=j)
-            parts.append(over_pairs_and_batch(collide_polygons, 8)(
+            parts.append(mapped(collide_polygons, 8)(
                 t(pos), t(ang), t(verts), t(nv), u(pos), u(ang), u(verts), u(nv), margin(i, j)))
         elif call == "pc":
-            m = over_pairs_and_batch(collide_polygon_circle, 6)(t(pos), t(ang), t(verts), t(nv), take_rows(pos, j),
-                                                                 take_rows(rad, j - P), margin(i, j))
+            m = mapped(collide_polygon_circle, 6)(t(pos), t(ang), t(verts), t(nv), take_rows(pos, j),
+                                                  take_rows(rad, j - P), margin(i, j))
             parts.append(dataclasses.replace(m, normal=m.normal * sign[:, None]))
         else:
-            parts.append(over_pairs_and_batch(collide_circles, 4)(t(pos), take_rows(rad, i - P), take_rows(pos, j),
-                                                                  take_rows(rad, j - P), margin(i, j)))
+            parts.append(mapped(collide_circles, 4)(t(pos), take_rows(rad, i - P), take_rows(pos, j),
+                                                    take_rows(rad, j - P), margin(i, j)))
     n = sum(x[1] for x in cand.lists)
     empty = Manifold(jnp.zeros((total - n, 2)).at[:, 1].set(1.0), jnp.zeros((total - n, 2, 2)),
                      jnp.zeros((total - n, 2)), jnp.full((total - n, 2), -1, jnp.int32),
                      jnp.zeros((total - n, 2), bool))
     empty = jax.tree.map(lambda x: jnp.broadcast_to(x.reshape(x.shape + (1,) * len(batch)), x.shape + batch), empty)
     return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
+
+
+class Found(NamedTuple):
+    """What the broad and narrow phase of a step give the rest of it (`find`), every array batch-last."""
+
+    cand: Candidates
+    manifold: Manifold  # (L, ...) per candidate row
+    jointed: jax.Array  # (L, B) rows whose bodies a chain of joints connects
+    contacts: object  # state.Contacts of each row's slot last step (padding rows: no point)
+
+
+def find(layout: ContactLayout, scene, joints, speculative, reach) -> Found:
+    """The step's broad and narrow phase for big scenes: each scene's candidate pairs, their manifolds, which are
+    jointed, and their slots' old contacts. scene: the batch-last state; joints: the batch-first state.joints
+    (the joint closure runs per scene); reach: (N, B) step_reach."""
+    M, S = layout.num_padded, layout.num_slots
+    B = scene.bodies.active.shape[-1]
+    rows, colours, width = rows_for(layout)
+    total = colours * width
+    may_collide = pair_filter(layout, scene.bodies, jnp.zeros((S, B), bool), M)
+    cand = candidates(layout, scene.bodies, speculative, may_collide, total - rows, reach)
+    manifold = collide_candidates(cand, scene.bodies, speculative, total, reach)
+    # The joint closure only where some scene has a joint: (M, M) matrix products are costly at M ~ 200.
+    jointed = jax.lax.cond(
+        jnp.any(joints.active),
+        lambda: jax.vmap(lambda j, a, b: joint_connected(j, M)[a, b])(joints, cand.slot_a.T, cand.slot_b.T),
+        lambda: jnp.zeros((B, total), bool))
+    # Each scene's old contacts of its candidates (padding rows: slot S, out of range, filled with 0).
+    contacts = jax.tree.map(lambda x: take_rows(x, cand.slot, fill=0), scene.contacts)
+    contacts = dataclasses.replace(contacts, key=jnp.where(cand.slot[:, None] < S, contacts.key, -1))
+    return Found(cand, manifold, jnp.moveaxis(jointed, 0, -1), contacts)
+
+
+def to_slots(cand: Candidates, num_slots: int, x, fill):
+    """(B, L, ...) per candidate row, batch-first -> (B, S, ...) per slot, by each scene's slots; padding rows
+    and slots without a candidate get `fill`."""
+    return jax.vmap(lambda x, slot: jnp.full((num_slots,) + x.shape[1:], fill, x.dtype).at[slot].set(x, mode="drop"))(
+        x, cand.slot.T)
 
 
 @functools.cache
@@ -326,10 +367,6 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     """The pairs of one scene that a broad-phase step from `state` would leave without contacts: close pairs
     (overlapping boxes, bodies that may collide) beyond the candidate capacity, and touching pairs the
     colouring could not place. For tests and diagnostics, outside jit (the step keeps no counter)."""
-    from jax2d.pairs import contact_layout
-    from jax2d.state import SimParams
-    from jax2d.step import _over_pairs_and_batch, joint_connected, pair_filter, step_reach
-
     params = SimParams() if params is None else params
     layout = contact_layout(state.num_polygons, state.num_circles, num_static)
     M = layout.num_padded
@@ -339,8 +376,7 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     rows, colours, width = rows_for(layout)
     reach = step_reach(scene, params.dt)
     cand = candidates(layout, scene.bodies, spec, may, colours * width - rows, reach)
-    manifold = narrow_phase(cand, scene.bodies, spec, functools.partial(_over_pairs_and_batch, batch=(1,)),
-                            colours * width, reach)
+    manifold = collide_candidates(cand, scene.bodies, spec, colours * width, reach)
     jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]  # (L, 1)
     live = jnp.any(manifold.valid, axis=1) & (cand.slot_kind != PADDING) & ~jointed
     b = state.bodies

@@ -1,6 +1,6 @@
 """Dynamic bodies against static ones at the end of a step: nothing gets into or through a wall (issue 28).
 
-Two position stages run after the joint projection (step._solve), on batch-last arrays:
+Two position stages run after the joint projection (step.py's _solve), on batch-last arrays:
 
     sweep back      continuous collision for a body that moved farther in the step than the speculative
                     margin covered (a light body sent off by a heavy fast one): its core disc (CORE_FRACTION
@@ -27,10 +27,11 @@ import jax
 import jax.numpy as jnp
 
 from jax2d import contact_solver
-from jax2d.contact_solver import _Block, _Rows, _sweep, _velocity_along
 from jax2d.math2d import Pose, Vel
+from jax2d.narrow_phase import joint_connected_batch_last
 from jax2d.pairs import ContactLayout
 from jax2d.state import Bodies, Joints, modes_agree
+from jax2d.sweeps import ROW, Block, Rows, pack_rows, sweep, velocity_along
 
 # Continuous collision sweeps a disc of this fraction of a body's inner radius (a circle's radius, a polygon's
 # smallest centre-to-edge distance): a body resting on a wall, or overlapping it by a few slops, keeps its core
@@ -65,7 +66,7 @@ class Shapes(NamedTuple):
 
 
 def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
-    """Shapes from batch-last bodies; reach: (N, *batch) step.step_reach; speculative: (*batch)."""
+    """Shapes from batch-last bodies; reach: (N, *batch) narrow_phase.step_reach; speculative: (*batch)."""
     v = b.vertices  # (P, V, 2, *batch)
     V = v.shape[1]
     nxt = _next_vertex(v, b.n_vertices)
@@ -96,11 +97,11 @@ def _next_vertex(v, n_vertices):
     return jnp.where(last, v[:, :1], jnp.roll(v, -1, axis=1))
 
 
-def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, linked) -> Pose:
+def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose) -> Pose:
     """Put every fast body that entered a static body's grown core back at the entry (module docstring).
 
-    pose0, pose: (M, *batch) the step's start and end poses; linked(joints, M) -> (M, M, *batch) bodies that a
-    chain of joints connects (step.joint_connected per scene), evaluated only when some body is fast.
+    pose0, pose: (M, *batch) the step's start and end poses; joints: batch-last. The bodies that a chain of
+    joints connects (narrow_phase.joint_connected per scene) are found only when some body is fast.
     """
     dx, dy = pose.x - pose0.x, pose.y - pose0.y
     travel = jnp.sqrt(dx * dx + dy * dy)
@@ -115,7 +116,8 @@ def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, linked) -> Po
         mode = jnp.pad(s.collision_mode, [(0, M - N)] + [(0, 0)] * (s.collision_mode.ndim - 1))
         static = jnp.pad(s.static, [(0, M - N)] + [(0, 0)] * (s.static.ndim - 1))
         # (M body, M wall, *batch)
-        may = modes_agree(mode[:, None], mode[None, :]) & ~linked(joints, M) & static[None, :] & fast[:, None]
+        linked = joint_connected_batch_last(joints, M)
+        may = modes_agree(mode[:, None], mode[None, :]) & ~linked & static[None, :] & fast[:, None]
         x0, y0 = pose0.x[:, None], pose0.y[:, None]  # (M, 1, *batch)
         r = s.core[:, None]
         t = jnp.ones_like(pose.x)
@@ -175,8 +177,8 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
     scene's result does not depend on the rest of its batch.
     """
     one_static = ((cc.ma == 0.0) != (cc.mb == 0.0)).astype(jnp.float32)  # (S, *batch)
-    with_wall = contact_solver.pack_rows(layout, [one_static, one_static]) > 0.0  # (C, 2, K, *batch)
-    live = with_wall & (const[:, contact_solver._ROW["nmass0"]:contact_solver._ROW["nmass0"] + 2] > 0.0)
+    with_wall = pack_rows(layout, [one_static, one_static]) > 0.0  # (C, 2, K, *batch)
+    live = with_wall & (const[:, ROW["nmass0"]:ROW["nmass0"] + 2] > 0.0)
     token = jnp.int32(0)
     allowed = PUSH_TOLERANCE * slop
 
@@ -184,9 +186,9 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
         sep = contact_solver.current_separation(layout, cc, pose, pose0, token)
         return jnp.where(live, sep, _FAR)
 
-    def push_colour(vels, lam, points, c: _Block, sep: _Rows):
+    def push_colour(vels, lam, points, c: Block, sep: Rows):
         for k in range(2):
-            s = sep[k] + _velocity_along(c, k, vels, c.nx, c.ny)
+            s = sep[k] + velocity_along(c, k, vels, c.nx, c.ny)
             move = jnp.clip(-(s + allowed), 0.0, MAX_PUSH)
             vels = vels + c.push("normal", k) * (c.point("nmass", k) * move)[None]
         return vels, None
@@ -196,7 +198,7 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
             if i:
                 sep = depth(pose)
             zero = jnp.zeros_like(pose.x)
-            d, _ = _sweep(layout, Vel(zero, zero, zero), push_colour, const, impulses, plan, sep)
+            d, _ = sweep(layout, Vel(zero, zero, zero), push_colour, const, impulses, plan, sep)
             pose = Pose(pose.x + d.x, pose.y + d.y, pose.a + d.w)
         return pose
 

@@ -29,8 +29,8 @@ import numpy as np
 
 import jax2d
 from jax2d import scene
+from jax2d.narrow_phase import joint_connected
 from jax2d.state import COLLIDE_ALL, COLLIDE_NORMAL, modes_agree
-from jax2d.step import joint_connected
 from tests.jax2d import scenes
 from tests.jax2d.scenes import rollout
 
@@ -112,7 +112,7 @@ def speed_up_tunnel(speed: float, tries: int = 5, gap: float = 0.25, thickness: 
     """A light 0.1 m ball at rest `gap` in front of a thin static wall (its near face at x = 0), hit from behind
     by a heavy 0.3 m box at `speed`, no gravity: how many of `tries` balls end behind the wall.
 
-    The ball is at rest when its step starts, so the speculative margin (step.step_reach) gives it no contact
+    The ball is at rest when its step starts, so the speculative margin (narrow_phase.step_reach) gives it no contact
     with the wall; the box's hit inside the step sends it off at up to 2x the box's speed. The tries start the
     box at every phase of a step's travel. ball_mode: the ball's collision mode (COLLIDE_ONLY_ALL: it ignores the
     wall, and passes)."""

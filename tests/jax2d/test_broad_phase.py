@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 
 import jax
 import jax.numpy as jnp
@@ -13,10 +12,10 @@ import pytest
 
 import jax2d
 from jax2d import broad_phase, scene
+from jax2d.narrow_phase import pair_filter
 from jax2d.pairs import contact_layout
 from tests.jax2d.scenes import pyramid, rollout
 
-step_module = importlib.import_module("jax2d.step")  # jax2d.step is the function
 STEP = jax2d.jit(jax2d.step, static_argnames="config")
 BROAD = jax2d.SolverConfig(broad_phase=True)
 ALL_PAIRS = jax2d.SolverConfig(broad_phase=False)
@@ -29,10 +28,9 @@ def _colouring(state):
     b = jax.tree.map(lambda x: x[..., None], state.bodies)
     rows, colours, width = broad_phase.rows_for(layout)
     spec = jnp.full((1,), 0.04)
-    may = step_module.pair_filter(layout, b, jnp.zeros((S, 1), bool), M)
+    may = pair_filter(layout, b, jnp.zeros((S, 1), bool), M)
     cand = broad_phase.candidates(layout, b, spec, may, colours * width - rows)
-    manifold = broad_phase.narrow_phase(cand, b, spec, functools.partial(step_module._over_pairs_and_batch,
-                                                                         batch=(1,)), colours * width)
+    manifold = broad_phase.collide_candidates(cand, b, spec, colours * width)
     live = np.asarray(jnp.any(manifold.valid, axis=1) & (cand.slot_kind != 4))  # (L, 1): one scene
     dyn = np.asarray(state.bodies.active & (state.bodies.inv_mass > 0))
     shareable = jnp.asarray(np.pad(~dyn, (0, M - len(dyn)), constant_values=True))[:, None]

@@ -55,7 +55,12 @@ AUTO_BODIES = 40
 # Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
 # (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).
 CANDIDATES_PER_BODY = 4
-MAX_COLOURS = 32  # colouring rounds; a colour holds up to 2 x candidates / MAX_COLOURS pairs
+# Colouring rounds; a colour holds up to candidates / MAX_COLOURS pairs (at least MIN_WIDTH), so the solve layout
+# has about as many positions as the candidate list has rows. Only touching pairs take a position; the rest of the
+# list is solved nowhere. Until issue 35 every candidate row had a position, in a layout of twice the list
+# (1,280 positions per xl scene for ~125 touching pairs), and preparing and sweeping them was most of an xl step.
+MAX_COLOURS = 32
+MIN_WIDTH = 8
 TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)
 
 
@@ -186,10 +191,18 @@ def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: i
 
 
 def rows_for(layout: ContactLayout) -> tuple[int, int, int]:
-    """(candidate rows before padding, colours, colour width) of each scene."""
+    """(candidate rows before padding, colours, colour width) of each scene. The candidate list has one padding
+    row after the candidates (PAD_ROWS), the row that the solve layout's empty positions point at."""
     rows = max(1, sum(capacities(layout)))
-    width = max(8, -(-2 * rows // MAX_COLOURS))
-    return rows, MAX_COLOURS, width
+    return (rows,) + solve_size(rows)
+
+
+def solve_size(rows: int) -> tuple[int, int]:
+    """(colours, colour width) of the solve layout for a candidate list of `rows` rows (before padding)."""
+    return MAX_COLOURS, max(MIN_WIDTH, -(-rows // MAX_COLOURS))
+
+
+PAD_ROWS = 1  # padding rows after each scene's candidates: never live
 
 
 def collide_candidates(cand: Candidates, b, speculative, total: int, reach=None) -> Manifold:
@@ -242,10 +255,10 @@ def find(layout: ContactLayout, scene, joints, speculative, reach) -> Found:
     (the joint closure runs per scene); reach: (N, B) step_reach."""
     M, S = layout.num_padded, layout.num_slots
     B = scene.bodies.active.shape[-1]
-    rows, colours, width = rows_for(layout)
-    total = colours * width
+    rows, _, _ = rows_for(layout)
+    total = rows + PAD_ROWS
     may_collide = pair_filter(layout, scene.bodies, jnp.zeros((S, B), bool), M)
-    cand = candidates(layout, scene.bodies, speculative, may_collide, total - rows, reach)
+    cand = candidates(layout, scene.bodies, speculative, may_collide, PAD_ROWS, reach)
     manifold = collide_candidates(cand, scene.bodies, speculative, total, reach)
     # The joint closure only where some scene has a joint: (M, M) matrix products are costly at M ~ 200.
     jointed = jax.lax.cond(
@@ -272,13 +285,13 @@ def _priority(rows: int) -> np.ndarray:
     return np.random.default_rng(28).permutation(rows).astype(np.int32)
 
 
-def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, width: int) -> tuple[DynamicLayout,
-                                                                                                  jax.Array]:
+def colour(cand: Candidates, live, shareable, num_padded: int) -> tuple[DynamicLayout, jax.Array]:
     """Colour each scene's live candidate rows (L, B) (a point in the scene); shareable (M, B): bodies static in
     the scene, which may repeat within a colour. Returns the layout (every index array per scene, batch last)
     and the rows it placed (L, B) (live ones beyond MAX_COLOURS rounds are not)."""
     # The rounds visit the candidate rows only: the padding rows after them (extra_rows) are never live.
     n = sum(x[1] for x in cand.lists)
+    colours, width = solve_size(max(1, n))
     col, pos = _rounds(cand.slot_a[:n], cand.slot_b[:n], live[:n], shareable, num_padded, colours, width,
                        _priority(live.shape[0])[:n])
     fill = jnp.full((live.shape[0] - n,) + col.shape[1:], -1, jnp.int32)
@@ -338,18 +351,17 @@ def _rounds(a, b, live, shareable, M: int, colours: int, width: int, priority: n
 
 def _positions(a, b, col, pos, *, num_padded: int, colours: int, width: int):
     """One scene's layout arrays from its colouring ((L,) sides, colours and positions): (solve slots, slot
-    order, solve sides, write back)."""
+    order, solve sides, write back).
+
+    Placed rows sit where the colouring put them; the other positions hold the last row, a padding row (no
+    point: nothing to solve), and the rows left without a position have slot order n, out of range (their
+    impulses unpack as 0: sweeps.unpack_rows)."""
     L, M = col.shape[0], num_padded
     placed = col >= 0
-    # Solve positions: placed rows where the colouring put them, every other row in a free position.
     n = colours * width
-    taken = jnp.zeros((n,), bool).at[jnp.where(placed, pos, n)].set(True, mode="drop")
-    free_pos = jnp.nonzero(~taken, size=L, fill_value=n)[0]
-    rest = jnp.nonzero(~placed, size=L, fill_value=0)[0]
-    count_rest = jnp.sum(~placed)
-    solve = jnp.zeros((n,), jnp.int32).at[jnp.where(placed, pos, n)].set(jnp.arange(L, dtype=jnp.int32), mode="drop")
-    solve = solve.at[jnp.where(jnp.arange(L) < count_rest, free_pos, n)].set(rest.astype(jnp.int32), mode="drop")
-    order = jnp.zeros((L,), jnp.int32).at[solve].set(jnp.arange(n, dtype=jnp.int32))
+    at_pos = jnp.where(placed, pos, n)
+    solve = jnp.full((n,), L - 1, jnp.int32).at[at_pos].set(jnp.arange(L, dtype=jnp.int32), mode="drop")
+    order = at_pos.astype(jnp.int32)
     sides = jnp.concatenate([a[solve].reshape(colours, width), b[solve].reshape(colours, width)], axis=1)
     k = pos - col * width
     c_idx = jnp.where(placed, col, colours)
@@ -375,11 +387,11 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     spec = jnp.full((1,), params.speculative_distance, jnp.float32)
     rows, colours, width = rows_for(layout)
     reach = step_reach(scene, params.dt)
-    cand = candidates(layout, scene.bodies, spec, may, colours * width - rows, reach)
-    manifold = collide_candidates(cand, scene.bodies, spec, colours * width, reach)
+    cand = candidates(layout, scene.bodies, spec, may, PAD_ROWS, reach)
+    manifold = collide_candidates(cand, scene.bodies, spec, rows + PAD_ROWS, reach)
     jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]  # (L, 1)
     live = jnp.any(manifold.valid, axis=1) & (cand.slot_kind != PADDING) & ~jointed
     b = state.bodies
     moving = jnp.zeros((M, 1), bool).at[:b.active.shape[0], 0].set(b.active & (b.inv_mass > 0))
-    _, placed = colour(cand, live, ~moving, M, colours, width)
+    _, placed = colour(cand, live, ~moving, M)
     return Overflow(int(jnp.sum(cand.dropped)), int(jnp.sum(live & ~placed)))

@@ -47,10 +47,13 @@ def pack_rows(layout: ContactLayout, rows) -> jax.Array:
 
 
 def unpack_rows(layout: ContactLayout, packed) -> jax.Array:
-    """(C, F, K, *batch), solve order -> (F, S, *batch), slot order."""
+    """(C, F, K, *batch), solve order -> (F, S, *batch), slot order. A per-scene slot order ((S, B): the broad
+    phase's layouts) may point past the end, for rows that were not solved: they unpack as 0."""
     C, F, K = packed.shape[:3]
     rows = jnp.swapaxes(packed, 0, 1).reshape((F, C * K) + packed.shape[3:])
-    return take_rows(rows, layout.slot_order, axis=1) if layout.walls_repeat else rows
+    if not layout.walls_repeat:
+        return rows
+    return take_rows(rows, layout.slot_order, axis=1, fill=0.0 if jnp.ndim(layout.slot_order) == 2 else None)
 
 
 def relative_velocity(vax, vay, wa, vbx, vby, wb, rax, ray, rbx, rby):

@@ -55,10 +55,12 @@ AUTO_BODIES = 40
 # Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
 # (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).
 CANDIDATES_PER_BODY = 4
-# Colouring rounds; a colour holds up to candidates / MAX_COLOURS pairs (at least MIN_WIDTH), so the solve layout
-# has about as many positions as the candidate list has rows. Only touching pairs take a position; the rest of the
-# list is solved nowhere. Until issue 35 every candidate row had a position, in a layout of twice the list
-# (1,280 positions per xl scene for ~125 touching pairs), and preparing and sweeping them was most of an xl step.
+# Colouring rounds; a colour holds up to 2 x candidates / MAX_COLOURS pairs (at least MIN_WIDTH). Only touching
+# pairs take a solve position; the rest of the list is solved nowhere. Until issue 35 every candidate row had a
+# position and the candidate list was padded to the layout's size (1,280 rows per xl scene for ~125 touching
+# pairs), so the constraints of 1,280 rows were prepared in every step; now 641. Narrower colours (candidates / 32)
+# were tried: the touching pairs then spill into more colours, and each colour costs the same few hundred kernels
+# per sweep whatever its width (xl batch 16, one device, load ~20: 23.4 against 22.3 ms of CPU time a step).
 MAX_COLOURS = 32
 MIN_WIDTH = 8
 TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)
@@ -199,7 +201,7 @@ def rows_for(layout: ContactLayout) -> tuple[int, int, int]:
 
 def solve_size(rows: int) -> tuple[int, int]:
     """(colours, colour width) of the solve layout for a candidate list of `rows` rows (before padding)."""
-    return MAX_COLOURS, max(MIN_WIDTH, -(-rows // MAX_COLOURS))
+    return MAX_COLOURS, max(MIN_WIDTH, -(-2 * rows // MAX_COLOURS))
 
 
 PAD_ROWS = 1  # padding rows after each scene's candidates: never live
@@ -293,7 +295,7 @@ def colour(cand: Candidates, live, shareable, num_padded: int) -> tuple[DynamicL
     n = sum(x[1] for x in cand.lists)
     colours, width = solve_size(max(1, n))
     col, pos = _rounds(cand.slot_a[:n], cand.slot_b[:n], live[:n], shareable, num_padded, colours, width,
-                       _priority(live.shape[0])[:n])
+                       _priority(colours * width)[:n])
     fill = jnp.full((live.shape[0] - n,) + col.shape[1:], -1, jnp.int32)
     col, pos = jnp.concatenate([col, fill]), jnp.concatenate([pos, fill])
     one = functools.partial(_positions, num_padded=num_padded, colours=colours, width=width)

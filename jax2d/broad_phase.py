@@ -58,9 +58,9 @@ CANDIDATES_PER_BODY = 4
 # Colouring rounds; a colour holds up to 2 x candidates / MAX_COLOURS pairs (at least MIN_WIDTH). Only touching
 # pairs take a solve position; the rest of the list is solved nowhere. Until issue 35 every candidate row had a
 # position and the candidate list was padded to the layout's size (1,280 rows per xl scene for ~125 touching
-# pairs), so the constraints of 1,280 rows were prepared in every step; now 641. Narrower colours (candidates / 32)
-# were tried: the touching pairs then spill into more colours, and each colour costs the same few hundred kernels
-# per sweep whatever its width (xl batch 16, one device, load ~20: 23.4 against 22.3 ms of CPU time a step).
+# pairs), so the constraints of 1,280 rows were prepared in every step; now 641. The width is kept: narrower
+# colours would put the touching pairs in more colours, and each colour costs the same few hundred kernels per
+# sweep whatever its width (not measured: the machine was too loaded to tell).
 MAX_COLOURS = 32
 MIN_WIDTH = 8
 TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)

@@ -42,7 +42,9 @@ import numpy as np
 
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.math2d import take_rows
-from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
+from jax2d.narrow_phase import joint_connected, over_pairs_and_batch, pair_filter, step_reach
+from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
+from jax2d.state import SimParams
 
 # With SolverConfig.broad_phase None, scenes of more than AUTO_BODIES bodies use the broad phase, at any
 # batch size: candidates and colourings are per scene, so its cost grows with the batch as the all-pairs
@@ -53,7 +55,14 @@ AUTO_BODIES = 40
 # Candidate pairs kept per scene: CANDIDATES_PER_BODY times the bodies a kind of pair involves
 # (a box in a pyramid overlaps about 6 others, each pair counted once: 3 per body).
 CANDIDATES_PER_BODY = 4
-MAX_COLOURS = 32  # colouring rounds; a colour holds up to 2 x candidates / MAX_COLOURS pairs
+# Colouring rounds; a colour holds up to 2 x candidates / MAX_COLOURS pairs (at least MIN_WIDTH). Only touching
+# pairs take a solve position; the rest of the list is solved nowhere. Until issue 35 every candidate row had a
+# position and the candidate list was padded to the layout's size (1,280 rows per xl scene for ~125 touching
+# pairs), so the constraints of 1,280 rows were prepared in every step; now 641. The width is kept: narrower
+# colours would put the touching pairs in more colours, and each colour costs the same few hundred kernels per
+# sweep whatever its width (not measured: the machine was too loaded to tell).
+MAX_COLOURS = 32
+MIN_WIDTH = 8
 TRIES_PER_COLOUR = 3  # matching attempts per round (each adds pairs that do not touch the earlier ones)
 
 
@@ -127,7 +136,7 @@ def capacities(layout: ContactLayout) -> list[int]:
 
 def boxes(b, speculative, reach=None) -> jax.Array:
     """(4, M?, *batch) lower x, lower y, upper x, upper y of every body (batch-last bodies), grown by
-    half the speculative distance and the body's reach in the step (step.step_reach; (N, *batch) or None)
+    half the speculative distance and the body's reach in the step (narrow_phase.step_reach; (N, *batch) or None)
     on each side, so two boxes overlap whenever the narrow phase could find a point (its margin is the
     speculative distance plus both reaches)."""
     pos, ang = b.position, b.angle  # (N, 2, *batch), (N, *batch)
@@ -184,18 +193,27 @@ def candidates(layout: ContactLayout, b, speculative, may_collide, extra_rows: i
 
 
 def rows_for(layout: ContactLayout) -> tuple[int, int, int]:
-    """(candidate rows before padding, colours, colour width) of each scene."""
+    """(candidate rows before padding, colours, colour width) of each scene. The candidate list has one padding
+    row after the candidates (PAD_ROWS), the row that the solve layout's empty positions point at."""
     rows = max(1, sum(capacities(layout)))
-    width = max(8, -(-2 * rows // MAX_COLOURS))
-    return rows, MAX_COLOURS, width
+    return (rows,) + solve_size(rows)
 
 
-def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: int, reach=None) -> Manifold:
+def solve_size(rows: int) -> tuple[int, int]:
+    """(colours, colour width) of the solve layout for a candidate list of `rows` rows (before padding)."""
+    return MAX_COLOURS, max(MIN_WIDTH, -(-2 * rows // MAX_COLOURS))
+
+
+PAD_ROWS = 1  # padding rows after each scene's candidates: never live
+
+
+def collide_candidates(cand: Candidates, b, speculative, total: int, reach=None) -> Manifold:
     """Manifolds of the candidate rows (batch-last), padding rows empty; total = rows with padding. A pair's
-    margin is the speculative distance plus both bodies' reach (step.narrow_phase; reach None: zero)."""
+    margin is the speculative distance plus both bodies' reach (narrow_phase.narrow_phase; reach None: zero)."""
     P = b.vertices.shape[0]
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
     batch = pos.shape[2:]
+    mapped = functools.partial(over_pairs_and_batch, batch=batch)
     spec = jnp.broadcast_to(jnp.asarray(speculative, jnp.float32), batch)
     reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
 
@@ -207,21 +225,59 @@ def narrow_phase(cand: Candidates, b, speculative, over_pairs_and_batch, total: 
         t = functools.partial(take_rows, idx=i)
         if call == "pp":
             u = functools.partial(take_rows, idx=j)
-            parts.append(over_pairs_and_batch(collide_polygons, 8)(
+            parts.append(mapped(collide_polygons, 8)(
                 t(pos), t(ang), t(verts), t(nv), u(pos), u(ang), u(verts), u(nv), margin(i, j)))
         elif call == "pc":
-            m = over_pairs_and_batch(collide_polygon_circle, 6)(t(pos), t(ang), t(verts), t(nv), take_rows(pos, j),
-                                                                 take_rows(rad, j - P), margin(i, j))
+            m = mapped(collide_polygon_circle, 6)(t(pos), t(ang), t(verts), t(nv), take_rows(pos, j),
+                                                  take_rows(rad, j - P), margin(i, j))
             parts.append(dataclasses.replace(m, normal=m.normal * sign[:, None]))
         else:
-            parts.append(over_pairs_and_batch(collide_circles, 4)(t(pos), take_rows(rad, i - P), take_rows(pos, j),
-                                                                  take_rows(rad, j - P), margin(i, j)))
+            parts.append(mapped(collide_circles, 4)(t(pos), take_rows(rad, i - P), take_rows(pos, j),
+                                                    take_rows(rad, j - P), margin(i, j)))
     n = sum(x[1] for x in cand.lists)
     empty = Manifold(jnp.zeros((total - n, 2)).at[:, 1].set(1.0), jnp.zeros((total - n, 2, 2)),
                      jnp.zeros((total - n, 2)), jnp.full((total - n, 2), -1, jnp.int32),
                      jnp.zeros((total - n, 2), bool))
     empty = jax.tree.map(lambda x: jnp.broadcast_to(x.reshape(x.shape + (1,) * len(batch)), x.shape + batch), empty)
     return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
+
+
+class Found(NamedTuple):
+    """What the broad and narrow phase of a step give the rest of it (`find`), every array batch-last."""
+
+    cand: Candidates
+    manifold: Manifold  # (L, ...) per candidate row
+    jointed: jax.Array  # (L, B) rows whose bodies a chain of joints connects
+    contacts: object  # state.Contacts of each row's slot last step (padding rows: no point)
+
+
+def find(layout: ContactLayout, scene, joints, speculative, reach) -> Found:
+    """The step's broad and narrow phase for big scenes: each scene's candidate pairs, their manifolds, which are
+    jointed, and their slots' old contacts. scene: the batch-last state; joints: the batch-first state.joints
+    (the joint closure runs per scene); reach: (N, B) step_reach."""
+    M, S = layout.num_padded, layout.num_slots
+    B = scene.bodies.active.shape[-1]
+    rows, _, _ = rows_for(layout)
+    total = rows + PAD_ROWS
+    may_collide = pair_filter(layout, scene.bodies, jnp.zeros((S, B), bool), M)
+    cand = candidates(layout, scene.bodies, speculative, may_collide, PAD_ROWS, reach)
+    manifold = collide_candidates(cand, scene.bodies, speculative, total, reach)
+    # The joint closure only where some scene has a joint: (M, M) matrix products are costly at M ~ 200.
+    jointed = jax.lax.cond(
+        jnp.any(joints.active),
+        lambda: jax.vmap(lambda j, a, b: joint_connected(j, M)[a, b])(joints, cand.slot_a.T, cand.slot_b.T),
+        lambda: jnp.zeros((B, total), bool))
+    # Each scene's old contacts of its candidates (padding rows: slot S, out of range, filled with 0).
+    contacts = jax.tree.map(lambda x: take_rows(x, cand.slot, fill=0), scene.contacts)
+    contacts = dataclasses.replace(contacts, key=jnp.where(cand.slot[:, None] < S, contacts.key, -1))
+    return Found(cand, manifold, jnp.moveaxis(jointed, 0, -1), contacts)
+
+
+def to_slots(cand: Candidates, num_slots: int, x, fill):
+    """(B, L, ...) per candidate row, batch-first -> (B, S, ...) per slot, by each scene's slots; padding rows
+    and slots without a candidate get `fill`."""
+    return jax.vmap(lambda x, slot: jnp.full((num_slots,) + x.shape[1:], fill, x.dtype).at[slot].set(x, mode="drop"))(
+        x, cand.slot.T)
 
 
 @functools.cache
@@ -231,15 +287,15 @@ def _priority(rows: int) -> np.ndarray:
     return np.random.default_rng(28).permutation(rows).astype(np.int32)
 
 
-def colour(cand: Candidates, live, shareable, num_padded: int, colours: int, width: int) -> tuple[DynamicLayout,
-                                                                                                  jax.Array]:
+def colour(cand: Candidates, live, shareable, num_padded: int) -> tuple[DynamicLayout, jax.Array]:
     """Colour each scene's live candidate rows (L, B) (a point in the scene); shareable (M, B): bodies static in
     the scene, which may repeat within a colour. Returns the layout (every index array per scene, batch last)
     and the rows it placed (L, B) (live ones beyond MAX_COLOURS rounds are not)."""
     # The rounds visit the candidate rows only: the padding rows after them (extra_rows) are never live.
     n = sum(x[1] for x in cand.lists)
+    colours, width = solve_size(max(1, n))
     col, pos = _rounds(cand.slot_a[:n], cand.slot_b[:n], live[:n], shareable, num_padded, colours, width,
-                       _priority(live.shape[0])[:n])
+                       _priority(colours * width)[:n])
     fill = jnp.full((live.shape[0] - n,) + col.shape[1:], -1, jnp.int32)
     col, pos = jnp.concatenate([col, fill]), jnp.concatenate([pos, fill])
     one = functools.partial(_positions, num_padded=num_padded, colours=colours, width=width)
@@ -297,18 +353,17 @@ def _rounds(a, b, live, shareable, M: int, colours: int, width: int, priority: n
 
 def _positions(a, b, col, pos, *, num_padded: int, colours: int, width: int):
     """One scene's layout arrays from its colouring ((L,) sides, colours and positions): (solve slots, slot
-    order, solve sides, write back)."""
+    order, solve sides, write back).
+
+    Placed rows sit where the colouring put them; the other positions hold the last row, a padding row (no
+    point: nothing to solve), and the rows left without a position have slot order n, out of range (their
+    impulses unpack as 0: sweeps.unpack_rows)."""
     L, M = col.shape[0], num_padded
     placed = col >= 0
-    # Solve positions: placed rows where the colouring put them, every other row in a free position.
     n = colours * width
-    taken = jnp.zeros((n,), bool).at[jnp.where(placed, pos, n)].set(True, mode="drop")
-    free_pos = jnp.nonzero(~taken, size=L, fill_value=n)[0]
-    rest = jnp.nonzero(~placed, size=L, fill_value=0)[0]
-    count_rest = jnp.sum(~placed)
-    solve = jnp.zeros((n,), jnp.int32).at[jnp.where(placed, pos, n)].set(jnp.arange(L, dtype=jnp.int32), mode="drop")
-    solve = solve.at[jnp.where(jnp.arange(L) < count_rest, free_pos, n)].set(rest.astype(jnp.int32), mode="drop")
-    order = jnp.zeros((L,), jnp.int32).at[solve].set(jnp.arange(n, dtype=jnp.int32))
+    at_pos = jnp.where(placed, pos, n)
+    solve = jnp.full((n,), L - 1, jnp.int32).at[at_pos].set(jnp.arange(L, dtype=jnp.int32), mode="drop")
+    order = at_pos.astype(jnp.int32)
     sides = jnp.concatenate([a[solve].reshape(colours, width), b[solve].reshape(colours, width)], axis=1)
     k = pos - col * width
     c_idx = jnp.where(placed, col, colours)
@@ -326,10 +381,6 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     """The pairs of one scene that a broad-phase step from `state` would leave without contacts: close pairs
     (overlapping boxes, bodies that may collide) beyond the candidate capacity, and touching pairs the
     colouring could not place. For tests and diagnostics, outside jit (the step keeps no counter)."""
-    from jax2d.pairs import contact_layout
-    from jax2d.state import SimParams
-    from jax2d.step import _over_pairs_and_batch, joint_connected, pair_filter, step_reach
-
     params = SimParams() if params is None else params
     layout = contact_layout(state.num_polygons, state.num_circles, num_static)
     M = layout.num_padded
@@ -338,12 +389,11 @@ def overflow(state, params=None, num_static: int = 0) -> Overflow:
     spec = jnp.full((1,), params.speculative_distance, jnp.float32)
     rows, colours, width = rows_for(layout)
     reach = step_reach(scene, params.dt)
-    cand = candidates(layout, scene.bodies, spec, may, colours * width - rows, reach)
-    manifold = narrow_phase(cand, scene.bodies, spec, functools.partial(_over_pairs_and_batch, batch=(1,)),
-                            colours * width, reach)
+    cand = candidates(layout, scene.bodies, spec, may, PAD_ROWS, reach)
+    manifold = collide_candidates(cand, scene.bodies, spec, rows + PAD_ROWS, reach)
     jointed = joint_connected(state.joints, M)[cand.slot_a, cand.slot_b]  # (L, 1)
     live = jnp.any(manifold.valid, axis=1) & (cand.slot_kind != PADDING) & ~jointed
     b = state.bodies
     moving = jnp.zeros((M, 1), bool).at[:b.active.shape[0], 0].set(b.active & (b.inv_mass > 0))
-    _, placed = colour(cand, live, ~moving, M, colours, width)
+    _, placed = colour(cand, live, ~moving, M)
     return Overflow(int(jnp.sum(cand.dropped)), int(jnp.sum(live & ~placed)))

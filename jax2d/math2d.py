@@ -140,6 +140,11 @@ def take_rows(x, idx, axis: int = 0, fill=None):
     return out.reshape(x.shape[:-2] + flat.shape)
 
 
+def pad_rows(x, m: int):
+    """Append zero rows (axis 0) so there are m: the static dummy body that makes the body count even."""
+    return jnp.pad(x, [(0, m - x.shape[0])] + [(0, 0)] * (x.ndim - 1))
+
+
 def scene_rows(idx, B: int):
     """(..., B) per-scene row indices idx -> indices into the flattened (N * B) axis of a batch-last array."""
     return idx * B + jnp.arange(B, dtype=idx.dtype)

@@ -31,21 +31,21 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jax2d.contact_solver import (
-    _MAX,
-    _N,
-    _ROW,
-    Schedule,
-    _Block,
-    _for_points,
-    _push,
-    _Rows,
-    _sweep,
-    _velocity_along,
-    _with_rows,
-)
 from jax2d.math2d import Vel
 from jax2d.pairs import ContactLayout
+from jax2d.sweeps import (
+    MAX,
+    NORMAL,
+    ROW,
+    Block,
+    Rows,
+    Schedule,
+    apply_impulse,
+    for_points,
+    sweep,
+    velocity_along,
+    with_rows,
+)
 
 # Rows of the propagation pass's packed (C, 6, K, *batch) array.
 _KICK = 0  # rows 0-1: the propagation impulse taken by point 0 / 1
@@ -60,32 +60,32 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
     gap: a function giving (C, 2, K, *batch) each point's separation at the step's end (called only where
     something bounces);
     h: the substep."""
-    rel = const[:, _ROW["rel0"]:_ROW["rel0"] + 2] + const[:, _ROW["boost0"]:_ROW["boost0"] + 2]
-    pushed = impulses[:, _MAX:_MAX + 2] > 0.0
-    bouncy = const[:, None, _ROW["restitution"]] > 0.0
+    rel = const[:, ROW["rel0"]:ROW["rel0"] + 2] + const[:, ROW["boost0"]:ROW["boost0"] + 2]
+    pushed = impulses[:, MAX:MAX + 2] > 0.0
+    bouncy = const[:, None, ROW["restitution"]] > 0.0
     hit = (rel < -threshold) & pushed & bouncy  # (C, 2, K, *batch)
     scene_bounces = jnp.any(hit, axis=(0, 1, 2))  # (*batch)
 
-    def approach(c: _Block, k, vels):
+    def approach(c: Block, k, vels):
         """A point's normal velocity in the propagation, with the speed it gains under gravity before impact."""
-        return _velocity_along(c, k, vels, c.nx, c.ny) + c.point("boost", k)
+        return velocity_along(c, k, vels, c.nx, c.ny) + c.point("boost", k)
 
-    def propagate(c: _Block, main: _Rows, k, vels, lam):
+    def propagate(c: Block, main: Rows, k, vels, lam):
         vn = approach(c, k, vels)
-        kick = (vn < -threshold) & (main[_MAX + k] > 0.0) & (c.restitution > 0.0)
+        kick = (vn < -threshold) & (main[MAX + k] > 0.0) & (c.restitution > 0.0)
         return lam[_KICK + k] + jnp.where(kick, -(1.0 + c.restitution) * c.point("nmass", k) * vn, 0.0)
 
-    def propagate_colour(vels, lam, points, c: _Block, main: _Rows):
-        return _for_points(points, _KICK, functools.partial(propagate, c, main),
-                           functools.partial(_push, c, "normal", _KICK), vels, lam)
+    def propagate_colour(vels, lam, points, c: Block, main: Rows):
+        return for_points(points, _KICK, functools.partial(propagate, c, main),
+                           functools.partial(apply_impulse, c, "normal", _KICK), vels, lam)
 
-    def measure_colour(vels, lam, points, c: _Block):
+    def measure_colour(vels, lam, points, c: Block):
         ends = {_END + k: approach(c, k, vels) for k in range(2)}
-        return vels, _with_rows(lam, ends)
+        return vels, with_rows(lam, ends)
 
-    def bounce(c: _Block, prop: _Rows, k, vels, lam):
+    def bounce(c: Block, prop: Rows, k, vels, lam):
         # The propagation ends at the separating speed right after impact. The velocity the step stores is
-        # the mean over a substep of flight, so it is lifted by -g_n h / 2 (contact_solver._impact_boost):
+        # the mean over a substep of flight, so it is lifted by -g_n h / 2 (contact_solver.prepare's impact_boost):
         # without the lift a bounce's apex came out g h / v low, 4 % of a 6 cm bounce at 4 substeps.
         out = jnp.maximum(prop[_END + k], 0.0)
         # A point still apart at the step's end (a speculative contact, pushed so that it does not cross
@@ -94,25 +94,25 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
         # have there after a bounce at contact, sqrt(out^2 + 2 g_n gap).
         out = jnp.sqrt(jnp.maximum(out * out + 2.0 * c.gn * jnp.maximum(prop[_GAP + k], 0.0), 0.0))
         target = jnp.where(prop[_KICK + k] > 0.0, out - 0.5 * h * c.gn, 0.0)
-        vn = _velocity_along(c, k, vels, c.nx, c.ny)
-        old = lam[_N + k]
+        vn = velocity_along(c, k, vels, c.nx, c.ny)
+        old = lam[NORMAL + k]
         new = jnp.maximum(old - c.point("nmass", k) * (vn - target), 0.0)
-        return jnp.where(scene_bounces & (lam[_MAX + k] > 0.0), new, old)
+        return jnp.where(scene_bounces & (lam[MAX + k] > 0.0), new, old)
 
-    def bounce_colour(vels, lam, points, c: _Block, prop: _Rows):
-        return _for_points(points, _N, functools.partial(bounce, c, prop), functools.partial(_push, c, "normal", _N),
-                           vels, lam)
+    def bounce_colour(vels, lam, points, c: Block, prop: Rows):
+        return for_points(points, NORMAL, functools.partial(bounce, c, prop),
+                          functools.partial(apply_impulse, c, "normal", NORMAL), vels, lam)
 
     def run():
         prop = jnp.zeros_like(impulses)
         v = vel0
         for _ in range(impact_sweeps):
-            v, prop = _sweep(layout, v, propagate_colour, const, prop, plan, impulses)
-        _, prop = _sweep(layout, v, measure_colour, const, prop, plan)
+            v, prop = sweep(layout, v, propagate_colour, const, prop, plan, impulses)
+        _, prop = sweep(layout, v, measure_colour, const, prop, plan)
         prop = prop.at[:, _GAP:_GAP + 2].set(gap())
         v, lam = vel, impulses
         for _ in range(bounce_sweeps):
-            v, lam = _sweep(layout, v, bounce_colour, const, lam, plan, prop)
+            v, lam = sweep(layout, v, bounce_colour, const, lam, plan, prop)
         return v, lam
 
     # Most steps bounce nowhere in the batch; the stage would then change nothing, so it is skipped:

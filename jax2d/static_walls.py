@@ -1,14 +1,17 @@
-"""Dynamic bodies against static ones at the end of a step: nothing gets into or through a wall (issue 28).
+"""Continuous collision and walls at the end of a step: nothing gets through a body, nor into a wall (issues 28, 35).
 
-Two position stages run after the joint projection (step._solve), on batch-last arrays:
+Two position stages run after the joint projection (step.py's _solve), on batch-last arrays:
 
     sweep back      continuous collision for a body that moved farther in the step than the speculative
                     margin covered (a light body sent off by a heavy fast one): its core disc (CORE_FRACTION
-                    of its inner radius) is swept along its centre's segment against every static polygon
-                    (Cyrus-Beck clipping against the edge half-planes grown by the core radius) and static
-                    circle it collides with; where it enters one from outside, the body goes back to the
-                    entry fraction of its move (position and angle), keeping its velocity, so the next
-                    step's contact resolves the impact (Box2D v3's continuous collision, simplified).
+                    of its inner radius) is swept along its centre's segment against every other polygon
+                    (Cyrus-Beck clipping against the edge half-planes grown by the core radius) and circle it
+                    collides with, static or dynamic (a moving one in its own frame: the segment from the
+                    centre's place relative to it at the step's start to that at the end); where it enters one
+                    from outside, the body goes back to the entry fraction of its move (position and angle),
+                    keeping its velocity, so the next step's contact resolves the impact (Box2D v3's continuous
+                    collision, simplified; Box2D sweeps fast bodies against static ones and "bullets" against
+                    dynamic ones: here every fast body is a bullet).
     push out        non-linear Gauss-Seidel position correction of the contact points with one static side:
                     a dynamic body deeper in a static one than PUSH_TOLERANCE linear slops is moved out,
                     along the step's contact normals, to that depth (at most MAX_PUSH per point and sweep). The joint
@@ -27,10 +30,11 @@ import jax
 import jax.numpy as jnp
 
 from jax2d import contact_solver
-from jax2d.contact_solver import _Block, _Rows, _sweep, _velocity_along
 from jax2d.math2d import Pose, Vel
+from jax2d.narrow_phase import joint_connected_batch_last
 from jax2d.pairs import ContactLayout
 from jax2d.state import Bodies, Joints, modes_agree
+from jax2d.sweeps import ROW, Block, Rows, pack_rows, sweep, velocity_along
 
 # Continuous collision sweeps a disc of this fraction of a body's inner radius (a circle's radius, a polygon's
 # smallest centre-to-edge distance): a body resting on a wall, or overlapping it by a few slops, keeps its core
@@ -59,13 +63,13 @@ class Shapes(NamedTuple):
     n_vertices: jax.Array
     radius: jax.Array
     collision_mode: jax.Array
-    static: jax.Array  # (N, *batch) active and static
+    active: jax.Array  # (N, *batch)
     core: jax.Array  # (M, *batch) the swept disc's radius; 0 for static bodies and the padding
     reach: jax.Array  # (M, *batch) how far the speculative margin covered each body's travel (m)
 
 
 def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
-    """Shapes from batch-last bodies; reach: (N, *batch) step.step_reach; speculative: (*batch)."""
+    """Shapes from batch-last bodies; reach: (N, *batch) narrow_phase.step_reach; speculative: (*batch)."""
     v = b.vertices  # (P, V, 2, *batch)
     V = v.shape[1]
     nxt = _next_vertex(v, b.n_vertices)
@@ -78,8 +82,7 @@ def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
     dynamic = b.active & (b.inv_mass > 0)
     pad = [(0, M - b.active.shape[0])] + [(0, 0)] * (b.active.ndim - 1)
     core = jnp.pad(jnp.where(dynamic, CORE_FRACTION * jnp.maximum(inner, 0.0), 0.0), pad)
-    return Shapes(v, b.n_vertices, b.radius, b.collision_mode, b.active & (b.inv_mass == 0),
-                  core, jnp.pad(reach + speculative, pad))
+    return Shapes(v, b.n_vertices, b.radius, b.collision_mode, b.active, core, jnp.pad(reach + speculative, pad))
 
 
 def _used(V: int, n_vertices):
@@ -96,44 +99,50 @@ def _next_vertex(v, n_vertices):
     return jnp.where(last, v[:, :1], jnp.roll(v, -1, axis=1))
 
 
-def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, linked) -> Pose:
-    """Put every fast body that entered a static body's grown core back at the entry (module docstring).
+def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose) -> Pose:
+    """Put every fast body that entered another body's grown core back at the entry (module docstring).
 
-    pose0, pose: (M, *batch) the step's start and end poses; linked(joints, M) -> (M, M, *batch) bodies that a
-    chain of joints connects (step.joint_connected per scene), evaluated only when some body is fast.
+    pose0, pose: (M, *batch) the step's start and end poses; joints: batch-last. The bodies that a chain of
+    joints connects (narrow_phase.joint_connected per scene) are found only when some body is fast.
+    The other body may move too: the fast body's centre is followed in the other's frame, from where it is at
+    the step's start (in the other's start pose) to where it is at the end (in its end pose), a straight
+    segment there; a static body's two poses are the same.
     """
     dx, dy = pose.x - pose0.x, pose.y - pose0.y
     travel = jnp.sqrt(dx * dx + dy * dy)
     # Only a body that went farther than the margin the narrow phase kept its contacts in can have passed
-    # a wall between two steps' contacts; and one that moved less than its core cannot enter past it.
+    # a body between two steps' contacts; and one that moved less than its core cannot enter past it.
     fast = (s.core > 0.0) & (travel > s.reach) & (travel > s.core)
 
     def run():
         P, V = s.vertices.shape[:2]
-        N = s.static.shape[0]
+        N = s.active.shape[0]
         M = pose.x.shape[0]
         mode = jnp.pad(s.collision_mode, [(0, M - N)] + [(0, 0)] * (s.collision_mode.ndim - 1))
-        static = jnp.pad(s.static, [(0, M - N)] + [(0, 0)] * (s.static.ndim - 1))
-        # (M body, M wall, *batch)
-        may = modes_agree(mode[:, None], mode[None, :]) & ~linked(joints, M) & static[None, :] & fast[:, None]
-        x0, y0 = pose0.x[:, None], pose0.y[:, None]  # (M, 1, *batch)
+        active = jnp.pad(s.active, [(0, M - N)] + [(0, 0)] * (s.active.ndim - 1))
+        linked = joint_connected_batch_last(joints, M)  # includes each body itself
+        # (M body, M other, *batch)
+        may = modes_agree(mode[:, None], mode[None, :]) & ~linked & active[None, :] & fast[:, None]
         r = s.core[:, None]
         t = jnp.ones_like(pose.x)
         if P:
-            # Static polygons in world frame (static bodies do not move: pose0 is their pose).
-            cos, sin = jnp.cos(pose0.a[:P]), jnp.sin(pose0.a[:P])
-            vx, vy = s.vertices[:, :, 0], s.vertices[:, :, 1]  # (P, V, *batch)
-            wx = pose0.x[:P, None] + cos[:, None] * vx - sin[:, None] * vy
-            wy = pose0.y[:P, None] + sin[:, None] * vx + cos[:, None] * vy
-            nxt = _next_vertex(jnp.stack([wx, wy], axis=2), s.n_vertices)
-            ex, ey = nxt[:, :, 0] - wx, nxt[:, :, 1] - wy
+            def local(p):  # (M body, P polygon, *batch) each body's centre in each polygon's frame at pose p
+                cos, sin = jnp.cos(p.a[None, :P]), jnp.sin(p.a[None, :P])
+                rx, ry = p.x[:, None] - p.x[None, :P], p.y[:, None] - p.y[None, :P]
+                return cos * rx + sin * ry, -sin * rx + cos * ry
+
+            (x0, y0), (x1, y1) = local(pose0), local(pose)
+            qx, qy = x1 - x0, y1 - y0
+            vx, vy = s.vertices[:, :, 0], s.vertices[:, :, 1]  # (P, V, *batch), body frame
+            nxt = _next_vertex(s.vertices, s.n_vertices)
+            ex, ey = nxt[:, :, 0] - vx, nxt[:, :, 1] - vy
             length = jnp.maximum(jnp.sqrt(ex * ex + ey * ey), 1e-9)
             nx, ny = ey / length, -ex / length  # outward normals of a CCW polygon
-            offset = nx * wx + ny * wy  # (P, V, *batch): inside is n . x <= offset
+            offset = nx * vx + ny * vy  # (P, V, *batch): inside is n . x <= offset
             used = _used(V, s.n_vertices)[None]  # (1, P, V, *batch)
-            # Every (body, polygon, edge): the segment x0 + t d against n . x <= offset + r.
+            # Every (body, polygon, edge): the segment x0 + t q against n . x <= offset + r.
             num = offset[None] + r[:, :, None] - (nx[None] * x0[:, :, None] + ny[None] * y0[:, :, None])
-            den = nx[None] * dx[:, None, None] + ny[None] * dy[:, None, None]
+            den = nx[None] * qx[:, :, None] + ny[None] * qy[:, :, None]
             entering, leaving = used & (den < 0.0), used & (den > 0.0)
             ratio = num / jnp.where(den == 0.0, 1.0, den)
             t_in = jnp.max(jnp.where(entering, ratio, 0.0), axis=2)
@@ -144,10 +153,12 @@ def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, linked) -> Po
             t = jnp.minimum(t, jnp.min(jnp.where(hit, t_in, 1.0), axis=1))
         C = N - P
         if C:
-            cx, cy, R = pose0.x[None, P:N], pose0.y[None, P:N], s.radius[None]
-            fx, fy = x0 - cx, y0 - cy
-            a = (dx * dx + dy * dy)[:, None]
-            bq = 2.0 * (fx * dx[:, None] + fy * dy[:, None])
+            R = s.radius[None]
+            fx, fy = pose0.x[:, None] - pose0.x[None, P:N], pose0.y[:, None] - pose0.y[None, P:N]
+            qx = pose.x[:, None] - pose.x[None, P:N] - fx
+            qy = pose.y[:, None] - pose.y[None, P:N] - fy
+            a = qx * qx + qy * qy
+            bq = 2.0 * (fx * qx + fy * qy)
             cq = fx * fx + fy * fy - (R + r) ** 2
             disc = bq * bq - 4.0 * a * cq
             t_in = (-bq - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.maximum(2.0 * a, 1e-12)
@@ -175,8 +186,8 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
     scene's result does not depend on the rest of its batch.
     """
     one_static = ((cc.ma == 0.0) != (cc.mb == 0.0)).astype(jnp.float32)  # (S, *batch)
-    with_wall = contact_solver.pack_rows(layout, [one_static, one_static]) > 0.0  # (C, 2, K, *batch)
-    live = with_wall & (const[:, contact_solver._ROW["nmass0"]:contact_solver._ROW["nmass0"] + 2] > 0.0)
+    with_wall = pack_rows(layout, [one_static, one_static]) > 0.0  # (C, 2, K, *batch)
+    live = with_wall & (const[:, ROW["nmass0"]:ROW["nmass0"] + 2] > 0.0)
     token = jnp.int32(0)
     allowed = PUSH_TOLERANCE * slop
 
@@ -184,9 +195,9 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
         sep = contact_solver.current_separation(layout, cc, pose, pose0, token)
         return jnp.where(live, sep, _FAR)
 
-    def push_colour(vels, lam, points, c: _Block, sep: _Rows):
+    def push_colour(vels, lam, points, c: Block, sep: Rows):
         for k in range(2):
-            s = sep[k] + _velocity_along(c, k, vels, c.nx, c.ny)
+            s = sep[k] + velocity_along(c, k, vels, c.nx, c.ny)
             move = jnp.clip(-(s + allowed), 0.0, MAX_PUSH)
             vels = vels + c.push("normal", k) * (c.point("nmass", k) * move)[None]
         return vels, None
@@ -196,7 +207,7 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
             if i:
                 sep = depth(pose)
             zero = jnp.zeros_like(pose.x)
-            d, _ = _sweep(layout, Vel(zero, zero, zero), push_colour, const, impulses, plan, sep)
+            d, _ = sweep(layout, Vel(zero, zero, zero), push_colour, const, impulses, plan, sep)
             pose = Pose(pose.x + d.x, pose.y + d.y, pose.a + d.w)
         return pose
 

@@ -1,6 +1,6 @@
 """The accuracy scenes of issue 28, shared by test_accuracy.py and its full report.
 
-    python -m tests.jax2d.accuracy            # every figure, with the full crowded-scene count
+    python -m tests.jax2d.accuracy            # every figure, with the full crowded-scene counts (8 action keys)
 
 Each scene returns plain numbers, so the tests assert on them and the report prints them.
 Scenes (all with the defaults: dt = 1/60, SimParams(), SolverConfig()):
@@ -29,8 +29,8 @@ import numpy as np
 
 import jax2d
 from jax2d import scene
+from jax2d.narrow_phase import joint_connected
 from jax2d.state import COLLIDE_ALL, COLLIDE_NORMAL, modes_agree
-from jax2d.step import joint_connected
 from tests.jax2d import scenes
 from tests.jax2d.scenes import rollout
 
@@ -112,7 +112,7 @@ def speed_up_tunnel(speed: float, tries: int = 5, gap: float = 0.25, thickness: 
     """A light 0.1 m ball at rest `gap` in front of a thin static wall (its near face at x = 0), hit from behind
     by a heavy 0.3 m box at `speed`, no gravity: how many of `tries` balls end behind the wall.
 
-    The ball is at rest when its step starts, so the speculative margin (step.step_reach) gives it no contact
+    The ball is at rest when its step starts, so the speculative margin (narrow_phase.step_reach) gives it no contact
     with the wall; the box's hit inside the step sends it off at up to 2x the box's speed. The tries start the
     box at every phase of a step's travel. ball_mode: the ball's collision mode (COLLIDE_ONLY_ALL: it ignores the
     wall, and passes)."""
@@ -129,6 +129,34 @@ def speed_up_tunnel(speed: float, tries: int = 5, gap: float = 0.25, thickness: 
                                      collision_mode=COLLIDE_ALL)  # it hits the ball in every mode
         _, rec = rollout(state, PARAMS, scenes.CHUNK)  # 1 s
         through.append(bool(np.any(rec["position"][:, ball, 0] > thickness + radius)))
+    return dict(tunnelled=int(sum(through)), tries=tries)
+
+
+def thrust_through_a_dynamic_plank(accel: float = 3000.0, tries: int = 12, thickness: float = 0.03,
+                                   plank_density: float = 1.0, fixed: bool = False) -> dict:
+    """A light 0.1 m ball (0.1 kg/m^2) pushed along x by a thruster at `accel` m/s^2 from rest, no gravity, toward
+    a free (dynamic) plank 3 cm x 2 m, 76 times its mass, from `tries` start distances between 0.05 and 3 m:
+    how many balls end up through the plank (their centre past its far face, in the plank's frame, at some step).
+
+    The speculative margin covers the travel of a body's velocity at the step's start; the thrust adds
+    accel dt^2 / 2 within the step (0.42 m at 3,000 m/s^2), and the ball's speed reaches the clamp (100 m/s)
+    after two steps, so the ball meets the plank at every speed up to the clamp. fixed: a static plank."""
+    radius = 0.05
+    capacity = jax2d.Capacity(polygons=1, circles=1, joints=0, thrusters=1, max_vertices=4)
+    through = []
+    for gap in np.linspace(0.05, 3.0, tries):
+        state = jax2d.empty_state(capacity, gravity=(0.0, 0.0))
+        state, plank = scene.add_rectangle(state, (thickness / 2, 0.0), thickness, 2.0, density=plank_density,
+                                         fixed=fixed)
+        state, ball = scene.add_circle(state, (-gap - radius, 0.0), radius, density=0.1)
+        mass, _ = scene.body_mass_properties(state, ball)
+        power = accel * mass / PARAMS.base_thruster_power
+        state, _ = scene.add_thruster(state, ball, (-gap - radius, 0.0), angle=0.0, power=power)
+        _, rec = rollout(state, PARAMS, scenes.CHUNK, thruster_actions=np.ones(1, np.float32))  # 1 s
+        rel = rec["position"][:, ball] - rec["position"][:, plank]
+        angle = rec["angle"][:, plank]
+        local_x = np.cos(angle) * rel[:, 0] + np.sin(angle) * rel[:, 1]
+        through.append(bool(np.any(local_x > thickness / 2)))
     return dict(tunnelled=int(sum(through)), tries=tries)
 
 
@@ -179,13 +207,15 @@ def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int):
     return inside, frozen
 
 
-def crowded_walls(scene_count: int = 64, steps: int = 2000, seed: int = 0) -> dict:
-    """Steps (of scene_count x steps) in which some dynamic centre is inside a static body, and the scenes."""
+def crowded_walls(scene_count: int = 64, steps: int = 2000, seed: int = 0, first_scene: int = 0) -> dict:
+    """Steps (of scene_count x steps) in which some dynamic centre is inside a static body, and the scenes.
+    seed: the random actions' key; the scenes are random_scene(first_scene ...)."""
     capacity = jax2d.Capacity(polygons=12, circles=4, joints=6, thrusters=2, max_vertices=8)
-    built = [scenes.random_scene(s, capacity)[0] for s in range(scene_count)]
+    built = [scenes.random_scene(s, capacity)[0] for s in range(first_scene, first_scene + scene_count)]
     inside, frozen = _crowded_run(scenes.stack(built), jax.random.key(seed), steps)
     inside = np.asarray(inside)
-    return dict(steps_inside=int(inside.sum()), scenes_inside=np.nonzero(inside.any(axis=0))[0].tolist(),
+    return dict(steps_inside=int(inside.sum()),
+                scenes_inside=(first_scene + np.nonzero(inside.any(axis=0))[0]).tolist(),
                 total=inside.size, frozen=int(np.asarray(frozen).sum()))
 
 
@@ -199,7 +229,12 @@ def main() -> None:
     for speed in (30.0, 60.0):
         for e in (0.0, 1.0):
             print(f"tunnel after a speed-up, box at {speed} m/s, ball e={e}", speed_up_tunnel(speed, restitution=e))
-    print("crowded walls 64 x 2000", crowded_walls())
+    for accel in (1000.0, 3000.0, 10000.0):
+        print(f"a thruster at {accel} m/s^2 through a dynamic plank", thrust_through_a_dynamic_plank(accel))
+    for seed in range(8):
+        print(f"crowded walls 64 x 2000, actions key {seed}", crowded_walls(seed=seed))
+    for first in (64, 128):
+        print(f"crowded walls, scenes {first}-{first + 63} x 2000, key 0", crowded_walls(first_scene=first))
 
 
 if __name__ == "__main__":

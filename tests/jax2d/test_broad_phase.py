@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 
 import jax
 import jax.numpy as jnp
@@ -13,10 +12,10 @@ import pytest
 
 import jax2d
 from jax2d import broad_phase, scene
+from jax2d.narrow_phase import pair_filter
 from jax2d.pairs import contact_layout
 from tests.jax2d.scenes import pyramid, rollout
 
-step_module = importlib.import_module("jax2d.step")  # jax2d.step is the function
 STEP = jax2d.jit(jax2d.step, static_argnames="config")
 BROAD = jax2d.SolverConfig(broad_phase=True)
 ALL_PAIRS = jax2d.SolverConfig(broad_phase=False)
@@ -27,16 +26,15 @@ def _colouring(state):
     layout = contact_layout(state.num_polygons, state.num_circles)
     M, S = layout.num_padded, layout.num_slots
     b = jax.tree.map(lambda x: x[..., None], state.bodies)
-    rows, colours, width = broad_phase.rows_for(layout)
+    rows, _, _ = broad_phase.rows_for(layout)
     spec = jnp.full((1,), 0.04)
-    may = step_module.pair_filter(layout, b, jnp.zeros((S, 1), bool), M)
-    cand = broad_phase.candidates(layout, b, spec, may, colours * width - rows)
-    manifold = broad_phase.narrow_phase(cand, b, spec, functools.partial(step_module._over_pairs_and_batch,
-                                                                         batch=(1,)), colours * width)
+    may = pair_filter(layout, b, jnp.zeros((S, 1), bool), M)
+    cand = broad_phase.candidates(layout, b, spec, may, broad_phase.PAD_ROWS)
+    manifold = broad_phase.collide_candidates(cand, b, spec, rows + broad_phase.PAD_ROWS)
     live = np.asarray(jnp.any(manifold.valid, axis=1) & (cand.slot_kind != 4))  # (L, 1): one scene
     dyn = np.asarray(state.bodies.active & (state.bodies.inv_mass > 0))
     shareable = jnp.asarray(np.pad(~dyn, (0, M - len(dyn)), constant_values=True))[:, None]
-    solved, placed = broad_phase.colour(cand, jnp.asarray(live), shareable, M, colours, width)
+    solved, placed = broad_phase.colour(cand, jnp.asarray(live), shareable, M)
     one = functools.partial(jax.tree.map, lambda x: np.asarray(x)[..., 0])
     solved = dataclasses.replace(solved, **{f: one(getattr(solved, f)) for f in (
         "slot_a", "slot_b", "slot_kind", "solve_slots", "slot_order", "solve_sides", "write_back")})
@@ -48,9 +46,15 @@ def test_colouring_places_every_touching_pair_once_and_no_moving_body_twice_per_
     cand, live, placed, solved, shareable = _colouring(state)
     assert live.sum() > 20 and np.array_equal(placed, live)
     order = np.asarray(solved.slot_order)
-    assert sorted(order.tolist()) == list(range(len(order)))  # a permutation of the solve positions
-    sides = np.asarray(solved.solve_sides)
     K = solved.per_colour
+    n = solved.num_colours * K
+    # Each placed row has a position of its own; the other rows none (n: out of range, unpacked as 0).
+    assert len(set(order[placed].tolist())) == placed.sum() and np.all(order[placed] < n)
+    assert np.all(order[~placed] == n)
+    solve = np.asarray(solved.solve_slots)
+    assert np.array_equal(solve[order[placed]], np.nonzero(placed)[0])
+    assert not live[solve[~np.isin(np.arange(n), order[placed])]].any()  # empty positions hold a dead row
+    sides = np.asarray(solved.solve_sides)
     live_at = live[np.asarray(solved.solve_slots)].reshape(solved.num_colours, K)
     for c in range(solved.num_colours):
         bodies = np.concatenate([sides[c, :K][live_at[c]], sides[c, K:][live_at[c]]])

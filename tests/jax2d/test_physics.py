@@ -23,8 +23,8 @@ import pytest
 
 import jax2d
 from jax2d import scene
+from jax2d.narrow_phase import joint_connected
 from jax2d.pairs import contact_layout
-from jax2d.step import joint_connected
 from tests.jax2d import scenes
 from tests.jax2d.scenes import rollout
 

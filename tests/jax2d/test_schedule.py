@@ -3,8 +3,8 @@
 import jax.numpy as jnp
 import numpy as np
 
-from jax2d import contact_solver, joint_solver
-from jax2d.contact_solver import CONST_ROWS
+from jax2d import joint_solver, sweeps
+from jax2d.sweeps import CONST_ROWS
 
 
 def test_contact_schedule_lists_colours_with_a_point_in_any_scene_in_order():
@@ -13,7 +13,7 @@ def test_contact_schedule_lists_colours_with_a_point_in_any_scene_in_order():
     const[5, CONST_ROWS.index("nmass1"), 2, 3] = 0.5  # colour 5: point 1 of one slot, in the last scene only
     const[2, CONST_ROWS.index("nmass0"), 0, 0] = 1.0
     const[4, CONST_ROWS.index("tmass0"), 0, 0] = 1.0  # a tangent mass alone is not a point
-    plan = contact_solver.schedule(jnp.asarray(const))
+    plan = sweeps.schedule(jnp.asarray(const))
     assert int(plan.count) == 2
     assert np.asarray(plan.order)[:2].tolist() == [2, 5]
     assert sorted(np.asarray(plan.order).tolist()) == list(range(C))

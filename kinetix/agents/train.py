@@ -248,6 +248,8 @@ def replan(meta: dict, done: int, steps: int) -> list[dict]:
     `done` on where it differs from the last. States written before plans were recorded had one plan."""
     plans = list(meta.get("plans") or [{"update": 0, "steps": meta["arguments"]["steps"]}])
     if plans[-1]["steps"] != steps:
+        if plans[-1]["update"] == done:  # re-planned again before any update ran: the newer plan replaces it
+            plans.pop()
         plans.append({"update": done, "steps": steps})
     return plans
 

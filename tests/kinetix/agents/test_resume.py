@@ -16,7 +16,7 @@ from kinetix.agents import resume
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.curricula import NEG, CurriculumConfig
 from kinetix.agents.ppo import TrainConfig
-from kinetix.agents.train import checkpoint_due, train_agent
+from kinetix.agents.train import checkpoint_due, replan, train_agent
 from kinetix.cli import main
 
 # Tiny and short: 4 chunks of 2 updates of 4 envs x 8 steps on random s levels with PLR (its buffer is filled
@@ -208,3 +208,13 @@ def test_checkpoint_cadence():
     assert not checkpoint_due(10_000.0, 10_000, every_minutes=None, every_updates=None)
     with pytest.raises(ValueError, match="checkpoint-every must be positive"):
         train_agent("random-s", "/nonexistent", checkpoint_every=0)
+
+
+def test_replan_records_where_the_length_changed():
+    old = {"arguments": {"steps": 100}}  # a state written before plans were recorded
+    assert replan(old, 4, 100) == [{"update": 0, "steps": 100}]
+    extended = replan(old, 4, 200)
+    assert extended == [{"update": 0, "steps": 100}, {"update": 4, "steps": 200}]
+    assert replan({"plans": extended}, 8, 200) == extended  # resumed with the same length: nothing new
+    # changed again before any update ran: the newer plan replaces the one that never took effect
+    assert replan({"plans": extended}, 4, 300) == [{"update": 0, "steps": 100}, {"update": 4, "steps": 300}]

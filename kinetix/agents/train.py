@@ -217,6 +217,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         return summary
 
     stopped = False
+    if len(history) < config.num_chunks * config.updates_per_call:  # processes compile at different speeds:
+        multihost.compile_together(trainer.run, runner)  # they meet before the update's collectives
     last_save_time, last_save_update = time.perf_counter(), len(history)
     for _ in range(len(history) // config.updates_per_call, config.num_chunks):
         stop = should_stop is not None and should_stop()

@@ -113,6 +113,10 @@ def _bench_server_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sessions", type=positive_int, default=8, help="concurrent playing sessions (default: 8)")
     parser.add_argument("--seconds", type=float, default=5.0, help="seconds per fps measurement (default: 5)")
     parser.add_argument("--chromium", default="/usr/bin/chromium", help="Chromium binary for the latency")
+    capacity = parser.add_mutually_exclusive_group()
+    capacity.add_argument("--capacity-only", action="store_true",
+                          help="measure only the capacity: tabs at >= 25 fps per core with 1 and 2 server processes")
+    capacity.add_argument("--no-capacity", action="store_true", help="skip the capacity measurement")
 
 
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
@@ -139,6 +143,13 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--allowed-hosts", type=comma_list(str), default=[], metavar="NAMES",
                         help="host names or addresses clients may use in the URL besides the --host address, "
                              "localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS rebinding)")
+    parser.add_argument("--trusted-proxies", default="", metavar="ADDRESSES",
+                        help="comma-separated addresses or networks of reverse proxies whose X-Forwarded-For, "
+                             "-Host and -Proto are believed (the client address for rate limits, the Host and "
+                             "Origin checks); '*' any (default: none; docs/deploy.md)")
+    parser.add_argument("--root-path", default="", metavar="PATH",
+                        help="serve everything under this path (e.g. /kinetix/ behind a proxy that forwards "
+                             "/kinetix/...); /kinetix redirects to /kinetix/ (default: the root)")
     parser.add_argument("--write-limit", type=float, default=None, metavar="N",
                         help="gallery writes (save, change, delete, vote) per minute per client address; 0 = no "
                              "limit (default: 60)")
@@ -240,6 +251,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dense-reward", type=float, default=None,
                         help="shaping scale (default: the level's; 0.1 on random levels)")
     parser.add_argument("--no-shard", action="store_true", help="do not split the env batch over local devices")
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="CPU devices to split the env batch over (default: one per core in a single-process "
+                             "run, one per process with --coordinator/--num-processes; XLA_FLAGS wins)")
     parser.add_argument("--minutes", type=float, default=None,
                         help="stop after this much wall-clock time, compiling included (default: no limit)")
     parser.add_argument("--target-solve-rate", type=float, default=None, metavar="RATE",
@@ -324,9 +338,32 @@ def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")
     parser.add_argument("--updates-per-call", type=positive_int, default=4, help="updates per chunk (default: 4)")
     parser.add_argument("--chunks", type=positive_int, default=3, help="timed chunks after the first (default: 3)")
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="CPU devices to split the env batch over (default: one per core, as bench env)")
+    parser.add_argument("--env", action="store_true",
+                        help="also measure `kinetix bench env`'s rollout at the same size and batch in the same run, "
+                             "and print the share of it that training keeps")
+
+
+def _bench_gym_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print results as JSON lines instead of a table")
+    parser.add_argument("--sizes", type=comma_list(str, allowed={"s", "m", "l"}), default=["s", "m", "l"],
+                        help="size classes whose reference level to measure, comma-separated (default: s,m,l)")
+    parser.add_argument("--level", metavar="FILE", help="measure this level file instead of the reference levels")
+    parser.add_argument("--batches", type=comma_list(positive_int), default=[512],
+                        help="numbers of environments, comma-separated (default: 512)")
+    parser.add_argument("--steps", type=positive_int, default=100, help="agent steps per measurement (default: 100)")
+    parser.add_argument("--observation", choices=["entity", "flat", "pixels"], default="entity",
+                        help="the gym env's observation type (default: entity)")
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="CPU devices to split each batch over, for both envs (default: one per core)")
+    parser.add_argument("--backend", choices=("cpu", "gpu"), default=None,
+                        help="run on this JAX backend (default: JAX's choice, a GPU where there is one)")
 
 
 COMMANDS += [
+    Command(("bench", "gym"), "measure the Gymnasium vector env (kinetix.gym) against the JAX env at one batch",
+            "kinetix.bench.gym:run", _bench_gym_arguments),
     Command(("bench", "train"), "measure PPO training throughput (env steps/s including updates) per size class",
             "kinetix.agents.bench:run", _bench_train_arguments),
     Command(("train",), "train a PPO agent on a level, a directory of levels or random levels",
@@ -386,12 +423,19 @@ def main(argv: list[str] | None = None) -> int:
     except CommandUnavailable as error:
         print(f"kinetix {' '.join(command.path)} is not available yet: {error}", file=sys.stderr)
         return 2
+    if getattr(args, "devices", None) is None and (getattr(args, "coordinator", None)
+                                                   or getattr(args, "num_processes", None)):
+        args.devices = 1  # several processes on one machine: each already has its share of the cores
     if getattr(args, "devices", False) is not False:  # before JAX starts: XLA reads the flag once
         from kinetix.devices import confine_to_one_core, request_cpu_devices
 
         request_cpu_devices(args.devices)
         if getattr(args, "loop_only", False):  # the benches' interactive-loop child (interactive_loops)
             confine_to_one_core()
+    if command.uses_jax:  # before JAX starts: it tries only the platforms present (no "Unable to ... 'tpu'")
+        from kinetix.devices import use_present_platforms
+
+        use_present_platforms()
     if getattr(args, "backend", None) is not None:  # before JAX starts: "cpu" hides the other backends
         from kinetix.devices import BackendError, select_backend
 

@@ -8,31 +8,34 @@ from __future__ import annotations
 import argparse
 import sys
 
-from kinetix.formats import describe, kinetix_json
+from kinetix.formats import kinetix_json
 from kinetix.level import LevelError
-from kinetix.levels import load_level, resize, save_level
+from kinetix.levels import load_level, save_level, write_atomically
 
 
-def convert(source: str, target: str, to: str | None = None, size: str | None = None) -> str:
-    """Convert `source` into `target`; returns the format written (default: the other one than the input's)."""
+def convert(source: str, target: str, to: str | None = None, size: str | None = None) -> tuple[str, str]:
+    """Convert `source` into `target`; returns (the format written, default: the other one than the input's, and
+    what a Kinetix export did: "split 1 polygon (6 vertices) into 2 parts welded by 1 fixed joint; exported as
+    size l"; "" for our format)."""
     file = load_level(source)
-    if size is not None:
-        file = resize(file, size)
     fmt = to or ("kinetix" if file.format == "ours" else "ours")
-    save_level(file, target, format=fmt)
     for warning in file.warnings:
         print(f"{source}: warning: {warning}", file=sys.stderr)
-    if fmt == "kinetix":  # what the public Kinetix will do differently with the file
-        for note in kinetix_json.export_notes(describe(file.level, file.params, file.name)):
-            print(f"{target}: note: {note}", file=sys.stderr)
-    return fmt
+    if fmt != "kinetix":
+        save_level(file, target, format=fmt, size=size)
+        return fmt, ""
+    export = kinetix_json.prepare(file, size)
+    write_atomically(target, export.text())
+    for note in export.notes():  # what the public Kinetix will do differently with the file
+        print(f"{target}: note: {note}", file=sys.stderr)
+    return fmt, export.summary()
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        fmt = convert(args.input, args.output, args.to, args.size)
+        fmt, summary = convert(args.input, args.output, args.to, args.size)
     except LevelError as error:
         print(f"kinetix convert: {error}", file=sys.stderr)
         return 1
-    print(f"wrote {args.output} ({fmt} format)")
+    print(f"wrote {args.output} ({fmt} format{': ' + summary if summary else ''})")
     return 0

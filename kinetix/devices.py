@@ -130,6 +130,65 @@ def per_device(fn, batch: int, in_axes: tuple, out_axis: int = 0):
 
 # ---------------------------------------------------------------- backends (CPU, GPU)
 
+# JAX tries every platform it knows at start-up, tpu included, and logs "Unable to initialize backend 'tpu': ...
+# libtpu.so ..." on every machine without one (every `kinetix serve`, issue 37). Accelerators come as plugins (the
+# `jax_plugins` entry points and namespace package: xla_cuda12, xla_cuda13, xla_rocm7, ...) or libtpu; each is
+# present where its plugin is installed and its device file exists.
+DEVICE_FILES = {"cuda": "/dev/nvidiactl", "rocm": "/dev/kfd", "tpu": "/dev/accel0"}
+
+
+def _jax_plugins() -> set[str]:
+    """The names of the JAX plugins installed (entry points of group jax_plugins, modules of jax_plugins.*)."""
+    import importlib.metadata
+    import importlib.util
+    import pkgutil
+
+    names = {entry.name for entry in importlib.metadata.entry_points(group="jax_plugins")}
+    try:
+        spec = importlib.util.find_spec("jax_plugins")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is not None and spec.submodule_search_locations:
+        names.update(module.name for module in pkgutil.iter_modules(spec.submodule_search_locations))
+    return names
+
+
+def present_platforms() -> list[str] | None:
+    """The JAX platforms of this machine, accelerators first and "cpu" last; None where a plugin is installed that
+    this does not know (JAX then keeps its own choice)."""
+    import importlib.util
+
+    found: list[str] = []
+    for plugin in sorted(_jax_plugins()):
+        platform = next((name for name in ("cuda", "rocm") if name in plugin), None)
+        if platform is None:
+            return None
+        if platform not in found and os.path.exists(DEVICE_FILES[platform]):
+            found.append(platform)
+    if importlib.util.find_spec("libtpu") is not None and os.path.exists(DEVICE_FILES["tpu"]):
+        found.append("tpu")
+    return [*found, "cpu"]
+
+
+def use_present_platforms() -> None:
+    """Before JAX starts: let it try only the platforms this machine has (JAX_PLATFORMS), so it does not log a
+    failed attempt at the others. A JAX_PLATFORMS or jax_platforms the user set is left alone, as is a JAX that
+    already started, or a machine with a plugin this does not know."""
+    if os.environ.get("JAX_PLATFORMS"):
+        return
+    platforms = present_platforms()
+    if platforms is None:
+        return
+    if "jax" not in sys.modules:
+        os.environ["JAX_PLATFORMS"] = ",".join(platforms)  # read by JAX's config as it is imported
+        return
+    import jax
+    from jax._src import xla_bridge
+
+    if not xla_bridge.backends_are_initialized() and not jax.config.jax_platforms:
+        jax.config.update("jax_platforms", ",".join(platforms))
+
+
 BACKENDS = ("cpu", "gpu")  # what `kinetix bench ... --backend` accepts
 GPU_INSTALL = "pip install -e '.[cuda]'"  # how to get JAX's CUDA backend (README, "Running on a GPU")
 

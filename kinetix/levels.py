@@ -84,28 +84,32 @@ def resize(level: Level | LevelFile, size: str | SizeClass) -> LevelFile:
     return LevelFile(out.level, out.params, out.size, out.name, file.format, warnings)
 
 
-def to_document(level: Level | LevelFile, format: str = "ours") -> dict:
+def to_document(level: Level | LevelFile, format: str = "ours", size: str | SizeClass | None = None) -> dict:
+    """The level as a JSON-ready document, optionally in another size class. The Kinetix format splits polygons
+    of more than 4 vertices and picks a size class that holds the result (kinetix_json.prepare); a `size` given
+    must hold it."""
     file = as_level_file(level)
     if format == "ours":
-        return ours.write(file)
+        return ours.write(file if size is None else resize(file, size))
     if format == "kinetix":
-        return kinetix_json.write(file)
+        return kinetix_json.write(file, size)
     raise LevelError(f"unknown format {format!r}: use one of {', '.join(FORMATS)}")
 
 
-def dumps(level: Level | LevelFile, format: str = "ours") -> str:
-    """The level as file text."""
+def dumps(level: Level | LevelFile, format: str = "ours", size: str | SizeClass | None = None) -> str:
+    """The level as file text (see to_document)."""
+    file = as_level_file(level)
     if format == "ours":
-        return ours.dumps(as_level_file(level))
-    return json.dumps(to_document(level, format), allow_nan=False) + "\n"
+        return ours.dumps(file if size is None else resize(file, size))
+    if format == "kinetix":
+        return kinetix_json.prepare(file, size).text()
+    raise LevelError(f"unknown format {format!r}: use one of {', '.join(FORMATS)}")
 
 
 def save_level(level: Level | LevelFile, path: str | os.PathLike, format: str = "ours",
                size: str | SizeClass | None = None) -> None:
     """Write the level to `path` atomically (a temporary file renamed into place), optionally resized."""
-    if size is not None:
-        level = resize(level, size)
-    write_atomically(path, dumps(level, format))
+    write_atomically(path, dumps(level, format, size))
 
 
 def _umask() -> int:

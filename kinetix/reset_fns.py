@@ -48,10 +48,16 @@ def reset_list(levels: Level | Sequence[Level | LevelFile]) -> ResetFn:
     count = stacked.sim.bodies.active.shape[0]
 
     def reset(key: jax.Array) -> Level:
-        i = jax.random.randint(key, (), 0, count)
+        i = list_index(key, count)
         return jax.tree.map(lambda x: x[i], stacked)
 
     return reset
+
+
+def list_index(key: jax.Array, count: int) -> jax.Array:
+    """Which of `count` stacked levels reset_list's reset draws with `key` (int32 scalar): a caller holding per-level
+    data beside the levels (their EnvParams, say) picks the same row."""
+    return jax.random.randint(key, (), 0, count)
 
 
 def reset_random(size: str | SizeClass, generator: Callable[[jax.Array], Level] | None = None,

@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import socket
+import sys
 import threading
 import time
 from pathlib import Path
@@ -55,6 +56,8 @@ class Config:
     train_options: dict = dataclasses.field(default_factory=dict)  # e.g. {"config": {"num_envs": 8}} (tests)
     train_worker: object = None  # the training worker function (tests swap in a cheap one); default train_worker
     allowed_hosts: tuple[str, ...] = ()  # host names besides `host`, localhost and 127.0.0.1 (server.web.security)
+    trusted_proxies: str = ""  # proxies whose X-Forwarded-* headers are believed (server.web.proxies)
+    root_path: str = ""  # serve everything under this path, e.g. "/kinetix/" (server.web.http.mount_under)
     write_limit: float | None = None  # gallery writes per minute per client; None: RateLimits' default, 0: off
     identity_limit: float | None = None  # new gallery identities per hour per client; None: default, 0: off
 
@@ -75,6 +78,13 @@ class App:
         self.agents = None  # the AgentLink, with agents on
         self.drafts = None  # the DraftStore, with drafts on
         self.warmup = None  # the background compiles (server.play.warmup.WarmUp), once started
+        self.relay_token = None  # what viser's internal port asks of every connection (server.web.relay)
+
+    @property
+    def shared(self) -> bool:
+        """Whether the gallery is a database several processes share (PostgreSQL): then drafts, best runs and rate
+        limits live there too (docs/deploy.md); with SQLite they stay in this process and its data directory."""
+        return self.store is not None and self.store.dialect != "sqlite"
 
     @property
     def port(self) -> int:
@@ -84,7 +94,9 @@ class App:
     def url(self) -> str:
         host = self.config.host
         shown = "127.0.0.1" if host in ("0.0.0.0", "") else f"[{host}]" if ":" in host else host
-        return f"http://{shown}:{self.port}/"
+        from server.web.prefix import normalise
+
+        return f"http://{shown}:{self.port}{normalise(self.config.root_path)}/"
 
     def start(self) -> App:
         import uvicorn
@@ -93,7 +105,10 @@ class App:
         from server.play.manager import SessionManager
         from server.play.memory import keep_frame_buffers_resident
         from server.play.warmup import WarmUp
-        from server.web.http import MAX_BROWSER_MESSAGE, VISER_HOST, create_app
+        from server.web.http import MAX_BROWSER_MESSAGE, create_app
+        from server.web.prefix import normalise
+        from server.web.proxies import TrustedProxies
+        from server.web.relay import start_guarded_viser
         from server.web.security import allowed_hosts_for
 
         if self.config.max_sessions < 1:
@@ -103,6 +118,8 @@ class App:
         if self.config.max_training_per_client < 1:
             raise ValueError("--max-training-per-client must be at least 1, got "
                              f"{self.config.max_training_per_client}")
+        TrustedProxies.parse(self.config.trusted_proxies)  # a bad address or path fails before anything starts
+        normalise(self.config.root_path)
         if self.config.max_training_queue < 0:
             raise ValueError(f"--max-training-queue cannot be negative, got {self.config.max_training_queue}")
         # Bind the user's port first so a busy port fails loudly (viser would silently take the next one).
@@ -122,8 +139,9 @@ class App:
             from server.agents.play import warm_agent as agent
         self.warmup = WarmUp(self.config.warm_sizes, batches=self.config.warm_batches, agent=agent)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its internal URL even when not verbose
-            # Loopback only, whatever --host says: the one port the user gave is the only one others can reach.
-            self.viser = viser.ViserServer(host=VISER_HOST, port=0, verbose=False)
+            # Loopback only, whatever --host says, and only for the relay, which sends the token viser's port now
+            # asks for (server.web.relay): the one port the user gave is the only way in, checks included.
+            self.viser, self.relay_token = start_guarded_viser(viser)
         self.viser.gui.configure_theme(show_share_button=False, control_width="large", dark_mode=False)
         # Docked, the panel sits beside the canvas instead of floating over its right third, so no part of the level
         # hides behind it, and the browser renders a smaller canvas (headless Chromium at a 1280x800 window:
@@ -134,6 +152,7 @@ class App:
         # (software WebGL): 140 ms per render with them and 30 frames/s without, key-to-frame p50 114 -> 30 ms.
         self.viser.scene.configure_default_lights(enabled=False, cast_shadow=False)
         self.viser.scene.configure_environment_map(hdri=None)
+        forget_background_clear(self.viser)
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
                                       editor_factory=self.config.editor_factory,
                                       initial_level=self._initial_level(), warmup=self.warmup)
@@ -141,7 +160,9 @@ class App:
         if self.recorder is None:
             self._start_recordings()
         app = create_app(self.manager, self.viser.get_port(), gallery_router=router,
-                         allowed_hosts=allowed_hosts_for(self.config.host, self.config.allowed_hosts))
+                         allowed_hosts=allowed_hosts_for(self.config.host, self.config.allowed_hosts),
+                         trusted_proxies=TrustedProxies.parse(self.config.trusted_proxies),
+                         root_path=self.config.root_path, relay_token=self.relay_token)
         self._attach_agents()
         self._attach_drafts()
         # No per-message deflate: viser's frames are zstd and JPEG already, and deflating them per tab costs CPU.
@@ -181,22 +202,37 @@ class App:
         if not self.config.gallery:
             return None
         from server.gallery.api import make_router
-        from server.gallery.limits import RateLimits
+        from server.gallery.limits import RateLimits, SharedRateLimits
         from server.gallery.store import REPO_LEVELS, open_store
         from server.play.gallery_tab import GalleryLink
 
         # A new gallery gets the project's levels after the server answers (a thumbnail each: ~13 s from an empty
         # JAX cache), as the first warm-up task; a tab opened meanwhile shows the progress.
         self.store = open_store(self.config.db, data_dir=self.config.data or default_data_dir(), seed_dir=None)
-        self.warmup.prepend("the gallery's levels", lambda: self.store.seed(REPO_LEVELS))
+        # Until then the API answers 503 with Retry-After rather than an empty gallery (server.gallery.api).
+        ready = threading.Event()
+
+        def seed() -> None:
+            try:
+                self.store.seed(REPO_LEVELS)  # returns at once when the gallery was seeded (another process)
+            finally:
+                ready.set()  # a failed seed is logged by the warm-up; the gallery then serves what it has
+
+        self.warmup.prepend("the gallery's levels", seed)
         self._start_recordings()
-        link = GalleryLink(self.store, self.recorder if self.config.record else None)  # None: keeps no new runs
+        from server.recordings.replay import open_best_run
+
+        link = GalleryLink(self.store, self.recorder if self.config.record else None,  # None: keeps no new runs
+                           open_replay=open_best_run)
         link.attach(self.manager)
         if link.runs is not None:
             link.runs.remove_orphans()
         given = {"writes_per_minute": self.config.write_limit, "identities_per_hour": self.config.identity_limit}
-        limits = RateLimits(**{name: value for name, value in given.items() if value is not None})
-        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits)
+        given = {name: value for name, value in given.items() if value is not None}
+        # One process counts in memory; several on one PostgreSQL gallery count together in its rate_buckets table.
+        limits = SharedRateLimits(self.store, **given) if self.shared else RateLimits(**given)
+        return make_router(self.store, admin_token=os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits,
+                           ready=ready.is_set)
 
     def _start_recordings(self) -> None:
         """Record every play (server.recordings.recorder) into the gallery's recordings folder, else
@@ -240,14 +276,20 @@ class App:
             return
         from server.drafts.store import DraftStore
         from server.drafts.tab import DraftLink
+        from server.drafts.table import TableDraftStore
 
-        self.drafts = DraftStore(Path(self.config.data or default_data_dir()) / "drafts")
+        # Several processes on one PostgreSQL gallery share the drafts (a reload may reach another process).
+        self.drafts = TableDraftStore(self.store) if self.shared else \
+            DraftStore(Path(self.config.data or default_data_dir()) / "drafts")
         removed = self.drafts.clean_up()
         if removed:
             log.info("removed %d old drafts", len(removed))
         DraftLink(self.drafts).attach(self.manager)
 
-    def stop(self) -> None:
+    def stop(self, compile_timeout: float = 120.0) -> bool:
+        """Shut down: sessions, drafts, recordings, training, then (after waiting up to `compile_timeout` s for a
+        background compile under way) the side server and viser. Returns False if a compile still runs: XLA cannot
+        stop one midway, and the caller then ends the process itself (serve)."""
         from server.play import steps
 
         if self.warmup is not None:
@@ -260,7 +302,8 @@ class App:
             self.recorder.close()  # finish recordings of plays cut short by the shutdown
         if self.training is not None:
             self.training.close()
-        if not steps.wait_for_compiles(timeout=120):  # a compile cut off by interpreter exit aborts the process
+        compiled = steps.wait_for_compiles(timeout=compile_timeout)
+        if not compiled and compile_timeout > 0:  # a compile cut off by interpreter exit aborts the process
             log.warning("background compiles still running at shutdown")
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
@@ -274,6 +317,24 @@ class App:
                 self.viser.stop()
         if self._socket is not None:
             self._socket.close()
+        return compiled
+
+
+def forget_background_clear(server) -> None:
+    """Drop the "no background image" that viser's start-up (scene.reset) leaves in the state every new client is sent.
+
+    A new tab gets that state from viser's shared buffer while its own messages, the session's first frames among
+    them, come from its own buffer at the same time: the clear often came last and hid them, so the canvas stayed
+    blank until the next frame, about a second later on a loaded machine (issue 37: Watch agent showed a blank
+    canvas for ~1.2 s). Every tab draws its own background, so the shared one has nothing to clear. viser 1.1.1 has
+    no public call for this; if its internals differ, nothing is removed (the old behaviour)."""
+    try:
+        from viser._messages import BackgroundImageMessage
+
+        buffer = server._websock_server.get_message_buffer()
+        buffer.remove_from_buffer(lambda message: isinstance(message, BackgroundImageMessage))
+    except (ImportError, AttributeError):
+        log.debug("viser's start-up background clear stays", exc_info=True)
 
 
 def _megabytes(value: int | None) -> int | None:
@@ -292,6 +353,8 @@ def serve(args) -> int:
                     max_training_queue=getattr(args, "max_training_queue", 8),
                     max_training_per_client=getattr(args, "max_training_per_client", 1),
                     allowed_hosts=tuple(getattr(args, "allowed_hosts", ())),
+                    trusted_proxies=getattr(args, "trusted_proxies", ""),
+                    root_path=getattr(args, "root_path", ""),
                     write_limit=getattr(args, "write_limit", None),
                     identity_limit=getattr(args, "identity_limit", None),
                     recent_max_files=getattr(args, "recent_recordings", None),
@@ -312,5 +375,12 @@ def serve(args) -> int:
     except KeyboardInterrupt:
         pass
     print("Shutting down...", flush=True)
-    app.stop()
+    if not app.stop(compile_timeout=0.0):
+        # A Ctrl+C during the warm-up: everything is closed and written, but XLA cannot stop the compile under way
+        # (waiting for it took ~10 s), and an interpreter exit under a running compile aborts the process. So the
+        # process ends here, at once and cleanly; the compile is simply not finished (nothing of it is kept).
+        print("(the compile under way is abandoned)", flush=True)
+        logging.shutdown()
+        sys.stderr.flush()
+        os._exit(0)
     return 0

@@ -45,9 +45,12 @@
 
   // Notices (viser's notifications: "Saved to the gallery", errors, its own toasts) sit at the top LEFT of the
   // canvas by default, over the HUD line and the key legend the frames draw there. Keep them at the top RIGHT of
-  // the canvas instead (levels are mostly sky there), at most 40% of its width so a long HUD line stays clear.
+  // the canvas instead (levels are mostly sky there), at most 40% of its width so a long HUD line stays clear, and
+  // in its upper half, above the banner the frames draw across the middle ("Press Space or an arrow key to start",
+  // "You won!"; server.play.draw: at most BANNER_HALF pixels above the middle); more notices than fit scroll.
   const NOTICE_MARGIN = 12; // pixels from the canvas edges
   const NOTICE_WIDTH = 296; // viser's own width (20em)
+  const BANNER_HALF = 44; // half the height of a two-line banner (28 pixels a line + 16), with a margin
   function placeNotices(box) {
     let style = document.getElementById("kinetix-notices");
     if (!style) {
@@ -57,9 +60,11 @@
     }
     const width = Math.max(160, Math.min(NOTICE_WIDTH, Math.round(0.4 * box.width)));
     const left = Math.max(box.left + NOTICE_MARGIN, box.right - width - NOTICE_MARGIN);
+    const height = Math.max(80, Math.round(box.height / 2 - BANNER_HALF - NOTICE_MARGIN));
     style.textContent = ".mantine-Notifications-root { position: fixed !important; top: " +
       Math.round(box.top + NOTICE_MARGIN) + "px !important; left: " + Math.round(left) + "px !important; " +
-      "right: auto !important; width: " + width + "px !important; max-width: " + width + "px !important; }";
+      "right: auto !important; width: " + width + "px !important; max-width: " + width + "px !important; " +
+      "max-height: " + height + "px !important; overflow-y: auto !important; }";
   }
 
   // The overlay sits right after viser's canvas in the same parent, so viser's own overlays (the box-select

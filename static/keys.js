@@ -74,9 +74,12 @@
     own.onopen = () => own.send(JSON.stringify({ type: "hello", nonce, query: location.search,
       token: localStorage.getItem(TOKEN_KEY) }));
     own.onmessage = (ev) => {
-      if (JSON.parse(ev.data).type === "ready") {
+      const message = JSON.parse(ev.data);
+      if (message.type === "ready") {
         ready = true;
         while (queue.length) own.send(JSON.stringify(queue.shift()));
+      } else if (message.type === "fields_ack") {
+        releaseClick(message.id);
       }
     };
     own.onclose = () => {
@@ -91,6 +94,38 @@
   // The nonce element arrives with viser's GUI messages after load; watch the DOM until it appears (and again
   // after a reconnect gives the tab a new session).
   new MutationObserver(connect).observe(document.documentElement, { childList: true, subtree: true });
+
+  // A dialog's buttons (Save in "Save to gallery") send the dialog's text fields first. viser's client sends every
+  // panel update through one throttled sender (50 ms) that keeps only the newest message: a field changed just
+  // before another one (a paste, a scripted fill) was never sent, and the level was saved without its description
+  // (issue 37). So a click on a button of a dialog with text fields is held here, the fields' values go over this
+  // socket (the server sets them on its side), and the click goes on to viser once the server has them.
+  const FIELDS = "input[data-gui-uuid]:not([type=checkbox]):not([type=radio]), textarea[data-gui-uuid]";
+  const CLICK_HOLD_MS = 2000; // at most: a click is never lost, even if the answer does not come
+  const heldClicks = new Map(); // id -> the held click, to replay
+  let clickSeq = 0, replaying = false;
+  function releaseClick(id) {
+    const replay = heldClicks.get(id);
+    if (!replay) return;
+    heldClicks.delete(id);
+    replaying = true;
+    try { replay(); } finally { replaying = false; }
+  }
+  window.addEventListener("click", (e) => {
+    if (replaying || !socket || !ready || !e.target || !e.target.closest) return;
+    const button = e.target.closest("button");
+    const dialog = button && button.closest("[role=dialog]");
+    if (!dialog) return;
+    const values = {};
+    for (const field of dialog.querySelectorAll(FIELDS)) values[field.dataset.guiUuid] = field.value;
+    if (!Object.keys(values).length) return;
+    e.preventDefault();
+    e.stopImmediatePropagation();
+    const id = ++clickSeq;
+    heldClicks.set(id, () => button.click());
+    socket.send(JSON.stringify({ type: "fields", id, values }));
+    setTimeout(() => releaseClick(id), CLICK_HOLD_MS);
+  }, true);
 
   function typing(target) {
     const tag = target && target.tagName;

@@ -5,7 +5,8 @@
 // components do not give the input that id (Mantine gives it one of its own), so the label names nothing: the save
 // dialog's Name, Description and Tags fields had no accessible name. Whenever the panel changes, each label whose
 // `for` names no element is pointed at the input of its row; a slider (a <div role="slider">, which a label cannot
-// name) gets aria-labelledby instead.
+// name) gets aria-labelledby instead. Each tied input also keeps its GUI element's uuid (data-gui-uuid), which
+// keys.js sends with a dialog's values when one of its buttons is clicked.
 (function () {
   "use strict";
   const CONTROL = "input:not([type=hidden]), textarea, select, [role=slider]";
@@ -25,6 +26,7 @@
     if (named && named.matches(CONTROL)) return; // already tied
     const control = controlOf(label);
     if (!control) return;
+    if (label.htmlFor && !control.dataset.guiUuid) control.dataset.guiUuid = label.htmlFor; // viser's uuid
     if (control.getAttribute("role") === "slider") {
       if (!label.id) label.id = (label.htmlFor || "kinetix") + "-label";
       control.setAttribute("aria-labelledby", label.id);

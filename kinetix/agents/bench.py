@@ -1,6 +1,7 @@
 """`kinetix bench train`: PPO training throughput (env steps per second, updates included) per size class.
 
-Trains on random levels of each size (dr) and times the jitted chunks after the first one, so compiling
+Trains on random levels of each size (dr), the env batch split over the CPU devices (`--devices`, default one per
+core, as `kinetix bench env` does), and times the jitted chunks after the first one, so compiling
 is reported separately. Prints numbers only; nothing here passes or fails.
 """
 
@@ -15,9 +16,11 @@ import jax
 import jax2d
 from kinetix.agents import curricula
 from kinetix.agents.ppo import TrainConfig, make_train
-from kinetix.agents.train import RANDOM_DENSE_REWARD
+from kinetix.agents.sharding import batch_sharder, local_mesh
+from kinetix.devices import batch_devices
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.level import WALLS_SOLVER, size_class
+from kinetix.level_source import RANDOM_DENSE_REWARD
 
 
 def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int) -> dict:
@@ -28,8 +31,11 @@ def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_c
     env = make_env(EnvConfig(sc, solver=WALLS_SOLVER), generator)  # as `kinetix train` on random levels
     config = TrainConfig(num_envs=num_envs, num_steps=num_steps, updates_per_call=updates_per_call,
                          total_timesteps=num_envs * num_steps * updates_per_call * (chunks + 1))
+    shard = None
+    if batch_devices(num_envs) > 1:  # as `kinetix train` and `kinetix bench env`: the env batch over every device
+        shard = batch_sharder(local_mesh(), num_envs)
     trainer = make_train(config, env, EnvParams(dense_reward_scale=RANDOM_DENSE_REWARD),
-                         curricula.domain_randomisation(generator))
+                         curricula.domain_randomisation(generator), shard=shard)
     start = time.perf_counter()
     runner = jax2d.jit(trainer.init)(jax.random.key(0))
     runner, metrics = trainer.run(runner)
@@ -43,17 +49,33 @@ def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_c
     steps = chunks * updates_per_call * config.batch_size
     return {"size": size, "num_envs": num_envs, "num_steps": num_steps, "env_steps": steps,
             "seconds": round(elapsed, 2), "steps_per_second": round(steps / elapsed, 1),
-            "first_chunk_seconds": round(first, 2), "devices": jax.local_device_count()}
+            "first_chunk_seconds": round(first, 2), "devices": 1 if shard is None else jax.device_count()}
+
+
+def env_speed(size: str, num_envs: int) -> dict:
+    """`kinetix bench env`'s rollout of the same size class at the same batch (its reference level), for the ratio."""
+    from kinetix.bench.env import default_level_paths, measure_rollout
+    from kinetix.levels import load_level
+
+    path = default_level_paths([size])[0]
+    return measure_rollout(load_level(path), path.stem, num_envs, 100, cold=False)
 
 
 def run(args: argparse.Namespace) -> int:
     for size in args.sizes:
         result = measure(size, args.num_envs, args.num_steps, args.chunks, args.updates_per_call)
+        if args.env:
+            env = env_speed(size, args.num_envs)
+            result.update(env_level=env["level"], env_steps_per_second=round(env["steps_per_s"], 1),
+                          share_of_env=round(result["steps_per_second"] / env["steps_per_s"], 3))
         if args.json:
             print(json.dumps(result), flush=True)
-        else:
-            print(f"size {size}: {result['steps_per_second']:9.1f} env steps/s with updates "
-                  f"({result['num_envs']} envs, {result['env_steps']} steps in {result['seconds']} s; "
-                  f"first chunk incl. compile "
-                  f"{result['first_chunk_seconds']} s)", flush=True)
+            continue
+        line = (f"size {size}: {result['steps_per_second']:9.1f} env steps/s with updates ({result['num_envs']} envs "
+                f"on {result['devices']} device(s), {result['env_steps']} steps in {result['seconds']} s; first chunk "
+                f"incl. compile {result['first_chunk_seconds']} s)")
+        if args.env:
+            line += (f"; env alone {result['env_steps_per_second']:.0f} steps/s ({result['env_level']}): training "
+                     f"keeps {100 * result['share_of_env']:.1f}%")
+        print(line, flush=True)
     return 0

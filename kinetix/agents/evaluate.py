@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -21,23 +20,11 @@ from kinetix.agents.policy import load_policy, required_observation
 from kinetix.agents.rollout import run_episodes
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.level import LevelError, LevelFile
+from kinetix.level_source import level_paths
 from kinetix.levels import load_level
 from kinetix.reset_fns import stack_levels
 
 ATTEMPTS = 20
-
-
-def level_paths(spec: str | Path) -> list[Path]:
-    """A level file, or every *.json in a directory (sorted)."""
-    path = Path(spec)
-    if path.is_dir():
-        paths = sorted(path.glob("*.json"))
-        if not paths:
-            raise LevelError(f"no *.json level files in {path}")
-        return paths
-    if not path.is_file():
-        raise LevelError(f"level {path} does not exist")
-    return [path]
 
 
 def evaluate(agent: str, levels: list[tuple[str, LevelFile]], attempts: int = ATTEMPTS, seed: int = 0,

@@ -29,7 +29,7 @@ import optax
 from flax.training.train_state import TrainState
 
 import jax2d
-from kinetix.agents import distributions
+from kinetix.agents import distributions, parts
 from kinetix.agents.curricula import Curriculum, Feedback
 from kinetix.agents.networks import ActorCritic
 from kinetix.agents.rollout import fresh_state
@@ -119,18 +119,59 @@ def make_network(config: TrainConfig, action_type: str) -> ActorCritic:
     return ActorCritic(network=config.network, action=action_type, width=config.width, hidden=config.hidden)
 
 
+def normalise_advantages(advantages: jax.Array) -> jax.Array:
+    """Zero mean and unit spread over a minibatch (the PPO convention), before the loss sees any part of it."""
+    return (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+
 def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, batch: Transition,
              advantages: jax.Array, targets: jax.Array):
+    """The clipped PPO loss, a mean over the samples of `batch` (so parts of a minibatch average to the whole's).
+    `advantages` are already normalised over the whole minibatch (normalise_advantages)."""
     outputs, value = network.apply({"params": params}, batch.obs)
     log_prob = distributions.log_prob(outputs, batch.action, action_type)
     value_clipped = batch.value + jnp.clip(value - batch.value, -config.clip_eps, config.clip_eps)
     value_loss = 0.5 * jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2).mean()
     ratio = jnp.exp(log_prob - batch.log_prob)
-    adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    adv = advantages
     actor_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_eps, 1 + config.clip_eps) * adv).mean()
     entropy = distributions.entropy(outputs, action_type).mean()
     total = actor_loss + config.vf_coef * value_loss - config.ent_coef * entropy
     return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy}
+
+
+SHUFFLE_BLOCKS = 8  # env blocks the minibatch shuffle draws evenly from (see shuffle_minibatches)
+
+
+def shuffle_blocks(config: TrainConfig) -> int:
+    """The largest divisor of SHUFFLE_BLOCKS that splits the envs and every minibatch evenly."""
+    blocks = SHUFFLE_BLOCKS
+    while config.num_envs % blocks or config.batch_size % (blocks * config.num_minibatches):
+        blocks //= 2
+    return blocks
+
+
+def shuffle_minibatches(tree: Any, key: jax.Array, config: TrainConfig) -> Any:
+    """(T, E, ...) leaves -> (num_minibatches, minibatch, ...): every sample once, in a random order.
+
+    The envs are cut into `shuffle_blocks` blocks of consecutive envs; each block's samples are permuted within the
+    block and every minibatch takes the same number from each block (a stratified shuffle). When the env axis is
+    split over devices (kinetix.agents.sharding), whole blocks sit on one device and the shuffle moves no data
+    between devices; a permutation of the whole batch made XLA gather it onto every device (training on 2 CPU
+    devices ran at half the speed of one). The blocks do not depend on the device count, so one device and several
+    draw the same minibatches."""
+    blocks, minibatches = shuffle_blocks(config), config.num_minibatches
+    per_block = config.batch_size // blocks
+    orders = jax.vmap(lambda k: jax.random.permutation(k, per_block))(jax.random.split(key, blocks))
+
+    def one(x):
+        rest = x.shape[2:]
+        x = jnp.swapaxes(x, 0, 1).reshape((blocks, per_block) + rest)  # env-major: an env's steps stay together
+        x = jax.vmap(lambda block, order: block[order])(x, orders)
+        x = x.reshape((blocks, minibatches, per_block // minibatches) + rest)
+        return jnp.swapaxes(x, 0, 1).reshape((minibatches, config.batch_size // minibatches) + rest)
+
+    return jax.tree.map(one, tree)
 
 
 def ppo_update(network: nn.Module, action_type: str, config: TrainConfig, train_state: TrainState,
@@ -138,18 +179,16 @@ def ppo_update(network: nn.Module, action_type: str, config: TrainConfig, train_
     """`update_epochs` epochs of minibatch SGD on one rollout (leading axes (T, E)). Returns (state, mean losses).
 
     Pure: under a mesh the batch may be sharded over its env axis and XLA inserts the gradient all-reduce."""
-    flat = jax.tree.map(lambda x: x.reshape((config.batch_size,) + x.shape[2:]), (batch, advantages, targets))
-    grad_fn = jax.value_and_grad(lambda p, b, a, t: ppo_loss(network, action_type, config, p, b, a, t), has_aux=True)
+    loss = lambda p, mb: ppo_loss(network, action_type, config, p, *mb)
 
     def epoch(state, epoch_key):
-        order = jax.random.permutation(epoch_key, config.batch_size)
-        shuffled = jax.tree.map(lambda x: x[order].reshape((config.num_minibatches, -1) + x.shape[1:]), flat)
-
         def minibatch(state, mb):
-            (_, aux), grads = grad_fn(state.params, *mb)
+            mb_batch, mb_advantages, mb_targets = mb
+            aux, grads = parts.mean_grad(loss, state.params,
+                                         (mb_batch, normalise_advantages(mb_advantages), mb_targets))
             return state.apply_gradients(grads=grads), aux
 
-        return jax.lax.scan(minibatch, state, shuffled)
+        return jax.lax.scan(minibatch, state, shuffle_minibatches((batch, advantages, targets), epoch_key, config))
 
     train_state, aux = jax.lax.scan(epoch, train_state, jax.random.split(key, config.update_epochs))
     return train_state, jax.tree.map(jnp.mean, aux)
@@ -180,6 +219,36 @@ class Trainer:
     update: Callable[[Runner], tuple[Runner, dict]]  # one update (jittable)
     run: Callable[[Runner], tuple[Runner, dict]]  # `updates_per_call` updates, jitted; metrics stacked
     train: Callable[[jax.Array], dict]  # the whole run, jittable: {"runner": Runner, "metrics": stacked}
+
+
+TRUNCATED_ROWS = 1 / 16  # share of the env batch whose truncated successor values one gathered pass computes
+
+
+def _values_where(value_fn: Callable[[Any], jax.Array], obs: Any, wanted: jax.Array) -> jax.Array:
+    """value_fn(obs) on the rows where `wanted`, 0 elsewhere.
+
+    Few rows are wanted in a step (an episode reaches its time limit once in hundreds of steps), so on the CPU the
+    first TRUNCATED_ROWS of the batch that are wanted are gathered and evaluated alone, and all rows only when more
+    are wanted (lax.cond: envs that started together can time out together). On a GPU, where a data-dependent
+    branch costs a round trip to the host and the pass costs little, every row is evaluated."""
+    batch = wanted.shape[0]
+    capacity = max(1, int(batch * TRUNCATED_ROWS))
+
+    def every_row(obs, wanted):
+        return jnp.where(wanted, value_fn(obs), 0.0)
+
+    if capacity >= batch:
+        return every_row(obs, wanted)
+
+    def gathered(obs, wanted):
+        rows = jnp.nonzero(wanted, size=capacity, fill_value=batch)[0]  # batch: past the end, dropped below
+        values = value_fn(jax.tree.map(lambda x: x.at[rows].get(mode="clip"), obs))
+        return jnp.zeros((batch,), values.dtype).at[rows].set(values, mode="drop")
+
+    def on_cpu(obs, wanted):
+        return jax.lax.cond(wanted.sum() <= capacity, gathered, every_row, obs, wanted)
+
+    return parts.by_platform(on_cpu, every_row, obs, wanted)
 
 
 def _batch_where(pred, a, b):
@@ -226,16 +295,19 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
         pool_state = jax.vmap(fresh_state)(pool_levels)
         pool_obs = observe(pool_state)  # observed once per update, not once per step
         params = runner.train_state.params
+        apply = lambda obs: network.apply({"params": params}, obs)
 
         def env_step(carry, step_key):
             state, obs, ep_return, ids, levels = carry
             k_act, _ = jax.random.split(step_key)
-            outputs, value = network.apply({"params": params}, obs)
+            outputs, value = parts.forward(apply, obs)
             action = distributions.sample(k_act, outputs, action_type)
             log_prob = distributions.log_prob(outputs, action, action_type)
             next_state, reward, terminated, truncated, info = transition(state, action, runner.env_params)
             final_obs = observe(next_state)
-            _, bootstrap_value = network.apply({"params": params}, final_obs)
+            # V(s') is needed only where a time limit cut the episode: elsewhere s' is the next step's observation,
+            # whose value the next step computes (or a terminal state: no bootstrap)
+            truncated_value = _values_where(lambda o: parts.forward(apply, o)[1], final_obs, truncated & ~terminated)
             done = terminated | truncated
             step_ids = ids
             ep_return = ep_return + reward
@@ -244,12 +316,17 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
                      jnp.where(done, 0.0, ep_return), jnp.where(done, pool_ids, ids),
                      _batch_where(done, pool_levels, levels))
             t = Transition(obs, action, log_prob, value, reward, terminated.astype(jnp.float32),
-                           done.astype(jnp.float32), bootstrap_value)
+                           done.astype(jnp.float32), truncated_value)
             return carry, (t, step_ids, metrics)
 
         carry = (runner.env_state, runner.obs, runner.episode_return, runner.env_level_ids, runner.env_levels)
         carry, (batch, step_ids, ep) = jax.lax.scan(env_step, carry, jax.random.split(k_roll, T))
         env_state, obs, ep_return, env_ids, env_levels = carry
+        # the successor of step t is step t + 1's observation unless the episode ended at t
+        next_value = jnp.concatenate([batch.value[1:], parts.forward(apply, obs)[1][None]])
+        ended_by_limit = (batch.done > 0) & (batch.terminated == 0)
+        batch = dataclasses.replace(batch, bootstrap_value=jnp.where(ended_by_limit, batch.bootstrap_value,
+                                                                     next_value))
         advantages, targets = compute_gae(batch.reward, batch.value, batch.bootstrap_value, batch.terminated,
                                           batch.done, config.gamma, config.gae_lambda)
         train_state, losses = ppo_update(network, action_type, config, runner.train_state, batch, advantages,

@@ -36,59 +36,42 @@ import jax2d
 from kinetix.agents import checkpoint as checkpoint_module
 from kinetix.agents import curricula
 from kinetix.agents.checkpoint import CheckpointError
-from kinetix.agents.evaluate import level_paths
 from kinetix.agents.policy import resolve
 from kinetix.agents.ppo import TrainConfig, make_train
 from kinetix.agents.rollout import run_episodes
-from kinetix.env import EnvConfig, EnvParams, make_env
-from kinetix.level import WALLS_SOLVER, LevelError, size_class, solver_for
-from kinetix.levels import load_level, resize
-from kinetix.reset_fns import stack_levels
+from kinetix.env import EnvParams, make_env
+from kinetix.level import LevelError
+from kinetix.level_source import RANDOM_LEVELS, level_source
 
-RANDOM_LEVELS = ("random-s", "random-m", "random-l")
 # Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it). Nothing in the
 # compiled update depends on it but an annealed learning rate, which then follows the new total (see train_agent).
 EXTENDABLE = ("train.total_timesteps",)
-RANDOM_DENSE_REWARD = 0.1  # shaping on generated levels, as the public Kinetix environment
 
 
 def setup_levels(level: str, curriculum: str | None, observation: str, action: str,
                  curriculum_config: curricula.CurriculumConfig, dense_reward: float | None):
     """(env, env_params, curriculum factory taking a solve_rate_fn, description) for a --level spec."""
-    if level in RANDOM_LEVELS:
-        from kinetix.generate import sample_level
-
-        size = size_class(level[-1])
-        generator = lambda key: sample_level(key, size)
-        # Generated levels are built on empty_level: their walls are static.
-        env = make_env(EnvConfig(size, observation=observation, action=action, solver=WALLS_SOLVER), generator)
-        params = EnvParams(dense_reward_scale=RANDOM_DENSE_REWARD if dense_reward is None else dense_reward)
-        name = curriculum or "dr"
-        if name == "dr":
-            factory = lambda solve_rate_fn: curricula.domain_randomisation(generator)
-        elif name == "sfl":
-            factory = lambda solve_rate_fn: curricula.sfl(generator, solve_rate_fn, curriculum_config)
-        elif name == "plr":
-            factory = lambda solve_rate_fn: curricula.plr(generator, curriculum_config)
-        else:
-            raise ValueError(f"unknown curriculum {name!r}: use one of {', '.join(curricula.CURRICULA)}")
-        return env, params, factory, name
-    if curriculum is not None:
+    if level not in RANDOM_LEVELS and curriculum is not None:
         raise ValueError(f"--curriculum {curriculum} needs random levels (--level random-s|random-m|random-l); "
                          f"a level file or directory is trained on as given")
-    files = [load_level(p) for p in level_paths(level)]
-    skips = {lf.params.frame_skip for lf in files}
-    if len(skips) > 1:
-        raise LevelError(f"the levels in {level} use different frame skips {sorted(skips)}; train them separately")
-    largest = max((lf.size for lf in files), key=lambda s: (s.polygons + s.circles, s.joints, s.thrusters))
-    files = [lf if lf.size == largest else resize(lf, largest) for lf in files]
-    env = make_env(EnvConfig(largest, observation=observation, action=action, frame_skip=skips.pop(),
-                             solver=solver_for([lf.level for lf in files])), files[0])
-    params = EnvParams.from_level_params(files[0].params)
-    if dense_reward is not None:
-        params = dataclasses.replace(params, dense_reward_scale=dense_reward)
-    stacked = stack_levels(files)
-    return env, params, lambda solve_rate_fn: curricula.fixed(stacked), "fixed"
+    source = level_source(level, dense_reward)
+    config = source.env_config(observation, action)
+    if not source.random:
+        env = make_env(config, source.files[0])
+        stacked = source.stacked
+        return env, source.params, lambda solve_rate_fn: curricula.fixed(stacked), "fixed"
+    generator = source.generator
+    env = make_env(config, generator)
+    name = curriculum or "dr"
+    if name == "dr":
+        factory = lambda solve_rate_fn: curricula.domain_randomisation(generator)
+    elif name == "sfl":
+        factory = lambda solve_rate_fn: curricula.sfl(generator, solve_rate_fn, curriculum_config)
+    elif name == "plr":
+        factory = lambda solve_rate_fn: curricula.plr(generator, curriculum_config)
+    else:
+        raise ValueError(f"unknown curriculum {name!r}: use one of {', '.join(curricula.CURRICULA)}")
+    return env, source.params, factory, name
 
 
 def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, curriculum: str | None = None,
@@ -144,7 +127,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     if not shard and jax.process_count() > 1:
         raise ValueError("--no-shard cannot be used with several processes: each would train the whole batch alone")
     sharder = None
-    if shard and jax.device_count() > 1:
+    if shard and jax.device_count() > 1 and (jax.process_count() > 1 or config.num_envs % jax.device_count() == 0):
+        # (one process with a batch its devices do not divide trains on one device, as kinetix.devices.batch_devices)
         from kinetix.agents.sharding import batch_sharder, local_mesh
 
         sharder = batch_sharder(local_mesh(jax.devices()), config.num_envs)  # all processes' devices

@@ -70,12 +70,39 @@ def _make_env(level_file):
 
 def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = True) -> dict:
     """Agent steps per second of `batch` environments stepped `steps` times in one jitted scan."""
+    from kinetix.devices import batch_devices
+
+    run, compile_s, setup_s = compile_rollout(level_file, batch, steps, cold)
+    seconds, result, runs = timed_runs(run)
+    states, _, episodes_ended = result
+    return {
+        "what": "env",
+        "size": level_file.size.name,
+        "level": name,
+        "batch": batch,
+        "steps": steps,
+        "steps_per_s": batch * steps / seconds,
+        "seconds": seconds,
+        "runs": runs,
+        "compile_s": compile_s,
+        "setup_s": setup_s,
+        "devices": batch_devices(batch),
+        "episodes_ended": int(episodes_ended.sum()),
+        "finite": _finite(states),
+        **measured_on(),
+    }
+
+
+def compile_rollout(level_file, batch: int, steps: int, cold: bool = True):
+    """(run, compile seconds, set-up seconds): `run()` steps `batch` environments `steps` times in one jitted scan
+    (auto-reset, random multi-discrete actions) and returns (states, summed rewards, episodes ended) per
+    environment, asynchronously (block on it to time it)."""
     import jax
     import jax.numpy as jnp
 
     import jax2d
     from kinetix.actions import sample_random_action
-    from kinetix.devices import batch_devices, per_device, shard_batch
+    from kinetix.devices import per_device, shard_batch
 
     env, params = _make_env(level_file)
     action_type = env.config.action
@@ -110,25 +137,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
     start = time.perf_counter()
     compiled = jax2d.jit(rollout).lower(keys, params).compile()
     compile_s = time.perf_counter() - start
-
-    seconds, result, runs = timed_runs(lambda: compiled(keys, params))
-    states, _, episodes_ended = result
-    return {
-        "what": "env",
-        "size": level_file.size.name,
-        "level": name,
-        "batch": batch,
-        "steps": steps,
-        "steps_per_s": batch * steps / seconds,
-        "seconds": seconds,
-        "runs": runs,
-        "compile_s": compile_s,
-        "setup_s": setup_s,
-        "devices": batch_devices(batch),
-        "episodes_ended": int(episodes_ended.sum()),
-        "finite": _finite(states),
-        **measured_on(),
-    }
+    return (lambda: compiled(keys, params)), compile_s, setup_s
 
 
 def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bool = True) -> dict:
@@ -314,18 +323,28 @@ def table_row(result: dict) -> str:
             f"{result['compile_s']:>11.2f}{devices}{warning}")
 
 
-def run(args: argparse.Namespace) -> int:
+def load_bench_levels(args: argparse.Namespace) -> list[tuple[str, object, Path]] | None:
+    """(name, LevelFile, path) of --level or of the reference level of each of --sizes; None (after printing why)
+    when one does not load."""
     from kinetix.level import LevelError
     from kinetix.levels import load_level
 
     paths = [Path(args.level)] if args.level else default_level_paths(args.sizes)
-    level_files = []
+    levels = []
     for path in paths:
         try:
-            level_files.append((path.stem, load_level(path)))
+            levels.append((path.stem, load_level(path), path))
         except LevelError as error:
             print(f"cannot load level {path}: {error}", file=sys.stderr)
-            return 2
+            return None
+    return levels
+
+
+def run(args: argparse.Namespace) -> int:
+    loaded = load_bench_levels(args)
+    if loaded is None:
+        return 2
+    level_files = [(name, level_file) for name, level_file, _ in loaded]
 
     if args.json:
         def report(result: dict) -> None:

@@ -239,7 +239,9 @@ def build(spec: LevelSpec, size: SizeClass | None = None) -> LevelFile:
         if joint.a == joint.b:
             raise LevelError(f"{joint.path}: a joint needs two different bodies, got body {joint.a} twice")
         a, c = spec.bodies[joint.a], spec.bodies[joint.b]
-        if a.fixed and c.fixed:
+        # Not said of welds: a weld between two fixed parts is how a Kinetix export keeps a split fixed polygon one
+        # group for collisions (a body jointed to one part collides with none of them; kinetix.formats.split).
+        if a.fixed and c.fixed and not joint.fixed:
             warnings.append(f"{joint.path}: both bodies are fixed, so the joint does nothing")
         if joint.limits is not None and joint.limits[0] > joint.limits[1]:
             raise LevelError(f"{joint.path}.limits: lower {joint.limits[0]} is above upper {joint.limits[1]}")

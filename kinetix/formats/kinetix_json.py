@@ -13,13 +13,19 @@ size class, walls in polygon slots 0-3, zeroed solver caches, a recomputed colli
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 
 import numpy as np
 
-from kinetix.formats import BodySpec, JointSpec, LevelSpec, ThrusterSpec, describe
+from kinetix.formats import BodySpec, JointSpec, LevelSpec, ThrusterSpec, build, describe, fit_errors
 from kinetix.formats.fields import Fields, check_vector
+from kinetix.formats.split import MAX_PART_VERTICES, Split, split_polygons
 from kinetix.level import (
+    MAX_BODIES,
+    MAX_JOINTS,
+    MAX_THRUSTERS,
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
     NUM_WALLS,
@@ -29,16 +35,17 @@ from kinetix.level import (
     LevelFile,
     LevelParams,
     SizeClass,
+    size_class,
 )
 
-# Their files declare the vertex slots of every polygon in `static_env_params.max_polygon_vertices`; their level
-# files and engine default use 4. Export writes 4 unless a polygon needs more (up to our 8), so files of levels
-# without such polygons stay exactly like theirs.
-KINETIX_MAX_VERTICES = 4
-# Their collision code (Jax2D 1.0.x `collision.py`) reads only vertex slots 0-3 of a polygon, whatever the file
-# declares: a polygon with more vertices loads and simulates there, but collides as the shape of its first 4
-# vertices. Export says so (export_notes) instead of refusing.
-KINETIX_EXACT_COLLISION_VERTICES = 4
+# Their loader builds an empty scene whose every polygon holds the 4-vertex floor and then writes each file slot
+# into it, so it opens only files whose `static_env_params.max_polygon_vertices` is 4 (any other value fails with
+# "Incompatible shapes for broadcasting"), and their collision code reads only vertex slots 0-3. Export always
+# writes 4 and cuts bigger polygons into welded parts (kinetix.formats.split).
+KINETIX_MAX_VERTICES = MAX_PART_VERTICES
+# The size classes of the public Kinetix (its env_size configs), smallest first. It also loads files of any other
+# capacities (env_size custom reads them from the file).
+PUBLIC_SIZES = ("s", "m", "l")
 
 # Their engine settings that we do not model, written on export with the values of their level files.
 _THEIR_SOLVER_PARAMS = dict(
@@ -298,57 +305,157 @@ def collision_matrix(num_bodies: int, pairs: list[tuple[int, int]]) -> np.ndarra
     return ~linked
 
 
-def vertex_slots(spec: LevelSpec) -> int:
-    """The `max_polygon_vertices` a file of this level declares: 4 (theirs), or the most vertices a polygon has."""
-    return max([KINETIX_MAX_VERTICES] + [len(b.vertices) for b in spec.bodies if b.shape == "polygon"])
-
-
-def export_notes(spec: LevelSpec) -> list[str]:
-    """What the public Kinetix does differently with this level's file, in sentences for a person (empty if
-    nothing): polygons of more than 4 vertices load and simulate there but collide as their first 4 vertices, and
-    "always driven" motors (motor_auto) are not in the format."""
-    notes = []
-    auto = sum(j.motor_auto for j in spec.joints)
-    if auto:
-        notes.append(f"{auto} \"always driven\" motor{'s' if auto > 1 else ''} lose{'s' if auto == 1 else ''} that "
-                     "setting: the public format has no field for it, so there the motor runs only from its keys.")
-    many = [b for b in spec.bodies if b.shape == "polygon" and len(b.vertices) > KINETIX_EXACT_COLLISION_VERTICES]
-    if not many:
-        return notes
-    listed = ", ".join(f"the {len(b.vertices)}-vertex polygon at ({b.position[0]:.2f}, {b.position[1]:.2f})"
-                       for b in many)
-    n = KINETIX_EXACT_COLLISION_VERTICES
-    notes.append(
-        f"The file keeps every vertex (max_polygon_vertices = {vertex_slots(spec)}), and the public Kinetix loads "
-        f"and simulates it, but its collision code uses only the first {n} vertices of each polygon: there, {listed} "
-        f"{'collides' if len(many) == 1 else 'collide'} as the four-sided shape of "
-        f"{'its' if len(many) == 1 else 'their'} first {n} vertices. Here every polygon collides with its full shape.")
-    return notes
-
-
-def export_errors(spec: LevelSpec, size: SizeClass) -> list[str]:
-    """Why this level cannot be written as a public Kinetix file (empty if it can)."""
-    errors = []
-    polygons = [b for b in spec.bodies if b.shape == "polygon"]
-    if size.polygons < NUM_WALLS:
-        errors.append(f"size {size.name} has {size.polygons} polygon slots; Kinetix needs at least {NUM_WALLS} "
-                      "(its walls)")
-    walls = polygons[:NUM_WALLS]
+def export_errors(spec: LevelSpec) -> list[str]:
+    """Why this level cannot be written as a public Kinetix file, whatever the size (empty if it can)."""
+    walls = [b for b in spec.bodies if b.shape == "polygon"][:NUM_WALLS]
     if len(walls) < NUM_WALLS or not all(b.fixed for b in walls):
-        errors.append(f"Kinetix keeps {NUM_WALLS} fixed polygons (its walls) in polygon slots 0-3, but this "
-                      f"level's first polygons are {['fixed' if b.fixed else 'dynamic' for b in walls]}; "
-                      "build levels on kinetix.level.empty_level / add_walls")
-    return errors
+        return [f"Kinetix keeps {NUM_WALLS} fixed polygons (its walls) in polygon slots 0-3, but this "
+                f"level's first polygons are {['fixed' if b.fixed else 'dynamic' for b in walls]}; "
+                "build levels on kinetix.level.empty_level / add_walls"]
+    return []
 
 
-def write(file: LevelFile) -> dict:
-    """The level as a JSON-ready dict in the public Kinetix shape, padded to its size class."""
+def _counts(spec: LevelSpec) -> dict[str, int]:
+    polygons = sum(b.shape == "polygon" for b in spec.bodies)
+    return dict(polygons=polygons, circles=len(spec.bodies) - polygons, joints=len(spec.joints),
+                thrusters=len(spec.thrusters))
+
+
+def _is_public(size: SizeClass) -> bool:
+    return size.name in PUBLIC_SIZES and size == SIZES[size.name]
+
+
+def _choose_size(spec: LevelSpec, own: SizeClass, requested: SizeClass | None, what: str) -> tuple[SizeClass, str]:
+    """(size class to write, why in words). A requested size must hold the (split) level. Otherwise: the level's
+    own public size (s, m, l) or the next public one that holds it; past l, or for xl and custom levels, the
+    level's own capacities grown to hold it (the public loader takes any capacities: env_size custom)."""
+    if requested is not None:
+        if errors := fit_errors(spec, requested):
+            raise LevelError(f"cannot export to the Kinetix format in size {requested.name}{what}: "
+                             + "; ".join(errors))
+        return requested, ""
+    base = own
+    if _is_public(own):
+        for name in PUBLIC_SIZES[PUBLIC_SIZES.index(own.name):]:
+            if not fit_errors(spec, SIZES[name]):
+                return SIZES[name], "" if name == own.name else _too_small(spec, own)
+        base = SIZES[PUBLIC_SIZES[-1]]
+    elif not fit_errors(spec, own):
+        return own, ""
+    counts = _counts(spec)
+    bodies = counts["polygons"] + counts["circles"]
+    over = ([f"{bodies} bodies ({counts['polygons']} polygons, {counts['circles']} circles) > {MAX_BODIES}"]
+            if bodies > MAX_BODIES else [])
+    over += [f"{counts[kind]} {kind} > {limit}" for kind, limit in (("joints", MAX_JOINTS),
+                                                                   ("thrusters", MAX_THRUSTERS))
+             if counts[kind] > limit]
+    if over:
+        raise LevelError(f"cannot export to the Kinetix format{what}: the level needs " + "; ".join(over)
+                         + " allowed in any size class")
+    grown = {kind: max(getattr(base, kind), n) for kind, n in counts.items()}
+    size = next((s for s in SIZES.values() if s.counts() == grown), None) or SizeClass("custom", **grown)
+    return size, _too_small(spec, base)
+
+
+def _too_small(spec: LevelSpec, size: SizeClass) -> str:
+    return f"size {size.name} is too small for it: " + "; ".join(fit_errors(spec, size))
+
+
+@dataclasses.dataclass
+class Export:
+    """A level as written to a public Kinetix file: polygons of 5-8 vertices split, in the size class chosen."""
+
+    file: LevelFile  # the level written (built from split.spec in `size`)
+    split: Split
+    size_reason: str  # why the size is bigger than the level's, in words ("" if it is not)
+
+    @property
+    def size(self) -> SizeClass:
+        return self.file.size
+
+    def document(self) -> dict:
+        return document(self.file)
+
+    def text(self) -> str:
+        """The file's text (strict JSON: no NaN or infinity)."""
+        return json.dumps(self.document(), allow_nan=False) + "\n"
+
+    def summary(self) -> str:
+        """What export did, in words: "split 2 polygons (8 and 6 vertices) into 5 parts welded by 3 fixed joints;
+        exported as size l"."""
+        size, split = self.size, self.split.summary()
+        if _is_public(size):
+            where = f"exported as size {size.name}" + (f" ({self.size_reason})" if self.size_reason else "")
+        else:
+            where = (f"exported as size {size.name} ({size.polygons} polygons, {size.circles} circles, {size.joints} "
+                     f"joints, {size.thrusters} thrusters)" + (f"; {self.size_reason}" if self.size_reason else "")
+                     + f"; the public Kinetix, whose own sizes are {', '.join(PUBLIC_SIZES)}, loads it as a custom "
+                     "size (env_size custom)")
+        return f"{split}; {where}" if split else where
+
+    def notes(self) -> list[str]:
+        """What the public Kinetix does differently with the file, in sentences for a person (empty if nothing)."""
+        spec, notes = self.split.spec, []
+        auto = sum(j.motor_auto for j in spec.joints)
+        if auto:
+            notes.append(f"{auto} \"always driven\" motor{'s' if auto > 1 else ''} lose{'s' if auto == 1 else ''} "
+                         "that setting: the public format has no field for it, so there the motor runs only from its "
+                         "keys.")
+        driven = {k: f for k, f in self.split.motor_scale.items() if spec.joints[k].motor_on}
+        if driven:
+            listed = ", ".join(f"{spec.joints[k].path} x{factor:.3g}" for k, factor in driven.items())
+            one = len(driven) == 1
+            drives = "this motor now drives" if one else "these motors now drive"
+            notes.append(f"Motor power scaled ({listed}): {drives} one part of a split polygon, and a motor's "
+                         "torque limit grows with the inertia of the bodies it joins, so the power is raised to keep "
+                         "the limit it had on the whole polygon.")
+        scored = [p for p in self.split.polygons if ROLE_NAMES[spec.bodies[p.body].role] in ("green", "blue")]
+        if scored:
+            listed = ", ".join(f"{p.path} ({ROLE_NAMES[spec.bodies[p.body].role]}, {len(p.parts)} parts)"
+                               for p in scored)
+            one = len(scored) == 1
+            notes.append(f"The dense reward there sums the distances of every green-blue pair of bodies, so the "
+                         f"split polygon{'' if one else 's'} {listed} count{'s' if one else ''} once per part: the "
+                         "shaping reward changes scale, the win and loss rewards do not.")
+        return notes
+
+
+def prepare(file: LevelFile, size: str | SizeClass | None = None) -> Export:
+    """The level as it will be written (see `Export`); `size` forces a size class, which must hold it."""
+    spec = describe(file.level, file.params, file.name)
+    if errors := export_errors(spec):
+        raise LevelError("cannot export to the Kinetix format: " + "; ".join(errors))
+    split = split_polygons(spec)
+    what = f" after it {split.summary()}" if split.polygons else ""
+    chosen, reason = _choose_size(split.spec, file.size, None if size is None else size_class(size), what)
+    try:
+        built = build(split.spec, chosen)
+    except LevelError as error:
+        raise LevelError(f"cannot export to the Kinetix format{what}: {error}") from None
+    return Export(built, split, reason)
+
+
+def export_notes(file: LevelFile, size: str | SizeClass | None = None) -> list[str]:
+    """What export does and what the public Kinetix does differently, in sentences: the summary first."""
+    export = prepare(file, size)
+    return [export.summary()] + export.notes()
+
+
+def write(file: LevelFile, size: str | SizeClass | None = None) -> dict:
+    """The level as a JSON-ready dict in the public Kinetix shape (see `prepare` for the splitting and the size)."""
+    return document(prepare(file, size).file)
+
+
+def document(file: LevelFile) -> dict:
+    """A level whose polygons have at most 4 vertices as a JSON-ready dict in the public Kinetix shape, padded to
+    its size class."""
     level, size, p = file.level, file.size, file.params
     spec = describe(level, p, file.name)
-    if errors := export_errors(spec, size):
-        raise LevelError("cannot export to the Kinetix format: " + "; ".join(errors))
+    if too_many := [b.path for b in spec.bodies if b.shape == "polygon" and len(b.vertices) > KINETIX_MAX_VERTICES]:
+        raise LevelError(f"{', '.join(too_many)}: more than {KINETIX_MAX_VERTICES} vertices (use write, which "
+                         "splits them)")
     P, C = size.polygons, size.circles
-    slots = vertex_slots(spec)
+    slots = KINETIX_MAX_VERTICES
 
     sim = level.sim
     active = np.nonzero(np.asarray(sim.bodies.active))[0]

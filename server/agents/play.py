@@ -328,13 +328,24 @@ def draw_result(result: str) -> str:
     return {"solved": "Solved!", "failed": "Failed", "truncated": "Time is up", "nan": "Broke"}.get(result, result)
 
 
+RACE_BANNER_ROWS = (66, 28)  # the race's banner: from this many pixels above the canvas's bottom to this many
+
+
+def race_banner_box(width: int, height: int) -> tuple[int, int, int, int]:
+    """(left, top, right, bottom) of the race's banner ("Press Space ...", "You win!") in a frame of this size: a
+    band near the bottom, clear of the notices at the top right of the canvas (static/frames.js), which covered it
+    at the top (issue 37), and of each half's own result banner at mid-height."""
+    return 0, height - RACE_BANNER_ROWS[0], width, height - RACE_BANNER_ROWS[1]
+
+
 def _winner_banner(frame: np.ndarray, text: str) -> np.ndarray:
     image = Image.fromarray(frame)
     pen = ImageDraw.Draw(image)
     font = draw._font(22)
     width = pen.textlength(text, font=font)
-    pen.rectangle([0, 28, image.width, 66], fill=(255, 244, 200), outline=(60, 60, 60))
-    pen.text((image.width / 2 - width / 2, 34), text, fill=(20, 20, 20), font=font)
+    left, top, right, bottom = race_banner_box(image.width, image.height)
+    pen.rectangle([left, top, right, bottom], fill=(255, 244, 200), outline=(60, 60, 60))
+    pen.text((image.width / 2 - width / 2, top + 6), text, fill=(20, 20, 20), font=font)
     return np.asarray(image)
 
 

@@ -263,7 +263,8 @@ class AgentLink(TabTraining):
             best = self._race_best_run(race) if kind == "human" else None
             try:
                 self.store.record_play(race.gallery_id, kind, solved=side.solved, steps=int(side.steps),
-                                       seconds=float(side.seconds), recording_path=best)
+                                       seconds=float(side.seconds), recording_path=best,
+                                       author=race.session.author_token if kind == "human" else None)
             except Exception as error:  # a lost statistic is not worth a crash (e.g. the level was deleted)
                 log.warning("race play not recorded for %s: %s", race.gallery_id, error)
                 if best is not None:

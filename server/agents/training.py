@@ -61,6 +61,9 @@ def train_worker(level_path: str, out_dir: str, steps: int, messages, options: d
     try:
         import dataclasses as dc
 
+        from kinetix.devices import request_cpu_devices
+
+        request_cpu_devices()  # before JAX starts here: the env batch over every core, as `kinetix train` (niced)
         from kinetix.agents.ppo import TrainConfig
         from kinetix.agents.train import train_agent
 

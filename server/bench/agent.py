@@ -58,7 +58,7 @@ def watch_fps(agent: str | None, size_name: str, seconds: float) -> dict:
     app = App(Config(port=0, gallery=False, warm_sizes=(size_name,), warm_batches=False, warm_agent=False)).start()
     app.wait_until_warm()
     try:
-        client = ViserTestClient(app.viser.get_port(), 640, 480)
+        client = ViserTestClient(app.viser.get_port(), 640, 480, token=app.relay_token)
         nonce = session_nonce(client)
         while app.manager.session_by_nonce(nonce) is None:
             time.sleep(0.02)

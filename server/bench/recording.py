@@ -48,7 +48,7 @@ def _run(record: bool, seconds: float) -> dict:
         _timed(app.recorder, "play_stepped", stepped)
         _timed(app.recorder, "frame_pushed", pushed)
         _timed(app.recorder, "play_started", started)
-        client = ViserTestClient(app.viser.get_port(), 640, 480)
+        client = ViserTestClient(app.viser.get_port(), 640, 480, token=app.relay_token)
         try:
             nonce = session_nonce(client)
             while app.manager.session_by_nonce(nonce) is None:

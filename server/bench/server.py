@@ -10,7 +10,9 @@
 - fps delivered to one tab and to each of 8 concurrent playing sessions (through the user's port), counted at the
   websocket by headless protocol clients in a child process (browser tabs with software WebGL would measure the
   2-core machine's CPU, not the server);
-- peak RSS of this process (the server) while 8 sessions play.
+- peak RSS of this process (the server) while 8 sessions play;
+- capacity: tabs playing at >= 25 fps per CPU core, with 1 and with 2 server processes (server.bench.capacity;
+  `--capacity-only` runs just this, `--no-capacity` skips it), docs/deploy.md's sizing rule.
 """
 
 from __future__ import annotations
@@ -100,7 +102,7 @@ def _wire_latency(app, samples: int) -> tuple[list[float], list[float]]:
     tabs = []
     try:
         for port in (app.port, app.viser.get_port()):
-            client = ViserTestClient(port, 640, 480)
+            client = ViserTestClient(port, 640, 480, token=app.relay_token if port != app.port else None)
             tabs.append((client, None))
             client.wait_frame(timeout=30)
             tabs[-1] = (client, KeysSocket(app.port, session_nonce(client)))
@@ -178,17 +180,28 @@ def client_process() -> None:
     for client in clients:
         client.wait_frame(timeout=30)
     print("connected", flush=True)
-    sys.stdin.readline()
-    starts = [client.count() for client in clients]
-    t0 = time.monotonic()
-    time.sleep(seconds)
-    elapsed = time.monotonic() - t0
-    print(json.dumps([len(c.frames(start)) / elapsed for c, start in zip(clients, starts, strict=True)]), flush=True)
+    from server.bench.capacity import print_rates_when_asked
+
+    print_rates_when_asked(clients, seconds)
     for client in clients:
         client.close()
 
 
+def _capacity(args: argparse.Namespace) -> None:
+    """Tabs playing at >= 25 fps per core, with 1 and with 2 server processes (server.bench.capacity)."""
+    from server.bench.capacity import MIN_FPS, capacity, cores
+
+    quiet = (lambda line: None) if args.json else print
+    for processes in (1, 2):
+        tabs, _ = capacity(processes, seconds=args.seconds, report=quiet)
+        _print(f"tabs_at_{MIN_FPS:g}fps_{processes}_process", tabs, "tabs", args.json, cores=cores())
+        _print(f"tabs_per_core_{processes}_process", tabs / cores(), "tabs/core", args.json, cores=cores())
+
+
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "capacity_only", False):
+        _capacity(args)
+        return 0
     from kinetix.levels import load_level
     from server.app import App, Config
     from server.play import steps
@@ -222,4 +235,6 @@ def run(args: argparse.Namespace) -> int:
         _print(f"peak_rss_{args.sessions}_sessions", peak_mb, "MB", args.json)
     finally:
         app.stop()
+    if not getattr(args, "no_capacity", False):
+        _capacity(args)  # after this process's server stopped: the capacity servers get the machine
     return 0

@@ -6,6 +6,9 @@
     document = store.load(draft_id)           # None when there is no such draft; DraftError when it is unreadable
     store.discard(draft_id)
 
+`server.drafts.table.TableDraftStore` keeps the same documents in the gallery's database instead, so that several
+server processes behind one address share them (`kinetix serve --db postgresql://...`, docs/deploy.md).
+
 One JSON file per draft (`<id>.json`), written to a temporary file, flushed to disk and renamed over the old one, so
 a draft on disk is always a whole document (a crash leaves the previous version or a `.tmp` that `clean_up` removes).
 Drafts untouched for DRAFT_MAX_AGE_S are removed, and beyond DRAFT_CAP files the oldest go first.
@@ -153,9 +156,10 @@ def _make(cls, data: object, where: str):
 class DraftStore:
     """Draft files in one directory, written by a background thread (the newest document per draft wins)."""
 
-    def __init__(self, directory: Path, *, max_age_s: float = DRAFT_MAX_AGE_S, cap: int = DRAFT_CAP):
-        self.directory = Path(directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
+    def __init__(self, directory: Path | None, *, max_age_s: float = DRAFT_MAX_AGE_S, cap: int = DRAFT_CAP):
+        self.directory = Path(directory) if directory is not None else None  # None: a subclass stores elsewhere
+        if self.directory is not None:
+            self.directory.mkdir(parents=True, exist_ok=True)
         self.max_age_s, self.cap = max_age_s, cap
         self._cond = threading.Condition()
         self._pending: dict[str, dict] = {}  # draft id -> the newest document not yet written
@@ -170,16 +174,19 @@ class DraftStore:
         return secrets.token_urlsafe(12)
 
     def path(self, draft_id: str) -> Path:
+        """The draft's file; DraftError for a string that is not a draft id (checked before any storage is used)."""
         if not valid_id(draft_id):
             raise DraftError(f"{draft_id!r} is not a draft id")
-        return self.directory / f"{draft_id}.json"
+        return Path(self.directory or ".") / f"{draft_id}.json"
 
     # ------------------------------------------------------------ writing
 
     def save(self, draft_id: str, document: dict) -> None:
         """Write now (atomically: a temporary file flushed to disk, then renamed over the draft)."""
+        self._write_bytes(draft_id, json.dumps(document, separators=(",", ":"), allow_nan=False).encode())
+
+    def _write_bytes(self, draft_id: str, data: bytes) -> None:
         path = self.path(draft_id)
-        data = json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
         tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
         try:
             with open(tmp, "wb") as file:
@@ -231,7 +238,7 @@ class DraftStore:
                 self._cleaned = time.monotonic()
                 try:
                     self.clean_up()
-                except OSError:
+                except Exception:  # a full disk or a lost database connection must not stop the writes
                     log.exception("could not remove old drafts")
 
     def close(self) -> None:
@@ -245,17 +252,11 @@ class DraftStore:
 
     def load(self, draft_id: str) -> Draft | None:
         """The draft (after any queued write of it), None if there is none; DraftError if it cannot be read."""
-        path = self.path(draft_id)
+        self.path(draft_id)  # a bad id fails here
         self.flush(draft_id)
-        try:
-            size = path.stat().st_size
-            if size > MAX_DRAFT_BYTES:
-                raise DraftError(f"draft {draft_id} is {size} bytes, more than a draft can be")
-            data = path.read_bytes()
-        except FileNotFoundError:
+        data = self._read_bytes(draft_id)
+        if data is None:
             return None
-        except OSError as error:
-            raise DraftError(f"draft {draft_id} cannot be read: {error.strerror}") from None
         try:
             document = json.loads(data)
         except (UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -266,17 +267,35 @@ class DraftStore:
             draft = read_draft(document)
         except DraftError as error:
             raise DraftError(f"draft {draft_id}: {error}") from None
-        os.utime(path)  # opened counts as used: the age limit counts from the last use
+        self._touch(draft_id)  # opened counts as used: the age limit counts from the last use
         return draft
 
-    def discard(self, draft_id: str) -> None:
+    def _read_bytes(self, draft_id: str) -> bytes | None:
         path = self.path(draft_id)
+        try:
+            size = path.stat().st_size
+            if size > MAX_DRAFT_BYTES:
+                raise DraftError(f"draft {draft_id} is {size} bytes, more than a draft can be")
+            return path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as error:
+            raise DraftError(f"draft {draft_id} cannot be read: {error.strerror}") from None
+
+    def _touch(self, draft_id: str) -> None:
+        os.utime(self.path(draft_id))
+
+    def _remove(self, draft_id: str) -> None:
+        self.path(draft_id).unlink(missing_ok=True)
+
+    def discard(self, draft_id: str) -> None:
+        self.path(draft_id)
         with self._cond:
             self._pending.pop(draft_id, None)
         self.flush(draft_id)
-        path.unlink(missing_ok=True)
+        self._remove(draft_id)
 
-    def clean_up(self, now: float | None = None) -> list[Path]:
+    def clean_up(self, now: float | None = None) -> list:
         """Remove drafts older than max_age_s, the oldest beyond `cap`, and temporary files of a crash."""
         now = time.time() if now is None else now
         removed, drafts = [], []

@@ -21,7 +21,7 @@ from kinetix.ranges import RANGES
 from server.editor import levelio, properties
 from server.editor import selection as sel
 from server.editor.geometry import Point, outline, rotate
-from server.editor.gestures import PointerGestures
+from server.editor.gestures import SNAP_RADIUS, PointerGestures
 from server.editor.history import History, Snapshot
 from server.editor.levelio import EditorError
 
@@ -68,6 +68,7 @@ class Editor(PointerGestures):
         self.selection: list[tuple[str, int]] = []
         self.snapping = True
         self.grid = 0.1
+        self.snap_radius = SNAP_RADIUS  # m (gestures.SNAP_RADIUS); the session sets it from its canvas
         self.message: str | None = None
         # After a "no polygon left" refusal: the size class the panel offers to move the level to, and the refused
         # edit, which grow_size() does again once the level has room.
@@ -119,6 +120,9 @@ class Editor(PointerGestures):
             self.selection = selection
         self._clean_selection()
         self.message, self.size_offer, self._retry = None, None, None
+        # The guides showed how the pointer snapped while it moved; the edit is made, so they go (they stayed until
+        # the next pointer event). The ring at the feature it snapped to stays: it shows what the edit snapped to.
+        self._guides = []
         self._bump()
         self._file_revision = self.revision
         return None
@@ -373,8 +377,13 @@ class Editor(PointerGestures):
         return levelio.export(self.level_file(), format)
 
     def export_notes(self, format: str = "ours") -> list[str]:
-        """What the public tools do differently with the exported file (e.g. 5-8-vertex polygons in Kinetix)."""
+        """What the export does and what the public tools do differently with the file: for Kinetix, what was
+        split and the size class written, then notes (levelio.export_notes)."""
         return levelio.export_notes(self.level_file(), format)
+
+    def export_with_notes(self, format: str = "ours") -> tuple[str, list[str]]:
+        """(export(format), export_notes(format)) from one export."""
+        return levelio.export_with_notes(self.level_file(), format)
 
     # ------------------------------------------------------------ keys and overlay
 
@@ -401,6 +410,7 @@ class Editor(PointerGestures):
         elif key == "Escape":
             self._cancel()
             self.selection = []
+            self.message, self.size_offer, self._retry = None, None, None  # Esc dismisses a refusal too
             self._bump()
         elif key == "Enter":
             if not self._points:

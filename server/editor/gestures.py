@@ -17,6 +17,10 @@ CYCLE_DISTANCE = 0.03  # m: clicks this close count as "the same spot" and cycle
 DEFAULT_RADIUS = 0.2  # a click with the circle tool (no drag) makes a circle of this radius
 DEFAULT_SIDE = 0.4  # and with the rectangle tool, a square of this side
 MIN_SIZE = 0.02  # m: smaller circles and rectangles are refused
+# m: a point snaps to a feature (a vertex, a centre, the top of a circle) or aligns with one only this close. The
+# browser session sets Editor.snap_radius from its canvas (server.play.session.SNAP_PIXELS on screen); 0.08 m
+# (11 pixels on a 1280 x 800 page) moved a hinge from the click to a circle's top 10 pixels away (issue 37).
+SNAP_RADIUS = 0.04
 
 
 class PointerGestures:
@@ -28,7 +32,7 @@ class PointerGestures:
             self._guides, self._snap_point = [], None
             return p
         bodies = [(i, b) for i, b in enumerate(self.spec.bodies) if i not in exclude]
-        q, self._guides, self._snap_point = snap(p, bodies, self.grid)
+        q, self._guides, self._snap_point = snap(p, bodies, self.grid, self.snap_radius)
         return q
 
     def _snap_inside(self, p: Point, body: int) -> Point:

@@ -56,19 +56,26 @@ def parse(data: bytes, filename: str = "") -> tuple[LevelSpec, SizeClass]:
 
 
 def export(file: LevelFile, format: str) -> str:
-    if format not in ("ours", "kinetix"):
-        raise EditorError(f"unknown format {format!r}: use ours or kinetix")
-    try:
-        return dumps(file, format)
-    except LevelError as error:
-        raise EditorError(str(error)) from None
+    return export_with_notes(file, format)[0]
 
 
 def export_notes(file: LevelFile, format: str) -> list[str]:
-    """What the format's other tools will do differently with the exported file (sentences; [] if nothing)."""
-    if format != "kinetix":
-        return []
-    return kinetix_json.export_notes(describe(file.level, file.params, file.name))
+    """What the export does and what the format's other tools do differently with the file, in sentences: for
+    the Kinetix format first what was split and the size class written; [] for our format."""
+    return export_with_notes(file, format)[1]
+
+
+def export_with_notes(file: LevelFile, format: str) -> tuple[str, list[str]]:
+    """(file text, export_notes) from one export: a Kinetix export splits polygons and picks the size."""
+    if format not in ("ours", "kinetix"):
+        raise EditorError(f"unknown format {format!r}: use ours or kinetix")
+    try:
+        if format == "ours":
+            return dumps(file, format), []
+        export = kinetix_json.prepare(file)
+        return export.text(), [export.summary(), *export.notes()]
+    except LevelError as error:
+        raise EditorError(str(error)) from None
 
 
 def new_level(size: str | SizeClass) -> LevelSpec:
@@ -117,5 +124,5 @@ def fits(spec: LevelSpec, size: SizeClass) -> LevelFile:
         raise EditorError(str(error)) from None
 
 
-__all__ = ["EditorError", "parse", "export", "export_notes", "new_level", "random_level", "shaken", "fits",
-           "smallest_size", "warm_up"]
+__all__ = ["EditorError", "parse", "export", "export_notes", "export_with_notes", "new_level", "random_level",
+           "shaken", "fits", "smallest_size", "warm_up"]

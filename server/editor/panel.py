@@ -202,16 +202,16 @@ class EditorPanel:
         label = "the Kinetix format" if format == "kinetix" else "our format"
         with self.lock:
             try:
-                text = self.editor.export(format)
-                notes = self.editor.export_notes(format)
+                text, notes = self.editor.export_with_notes(format)
             except EditorError as error:
                 self.file_status.content = f"**Cannot download in {label}:** {_plain(str(error))}"
                 return
         name = (self.editor.spec.name or "level").replace("/", "_")
         filename = f"{name}.kinetix.json" if format == "kinetix" else f"{name}.json"
         self.send_download(filename, text.encode())
-        self.file_status.content = "\n\n".join([f"Downloaded {_plain(filename)}."]
-                                                + [f"**Note:** {_plain(note)}" for note in notes])
+        # A Kinetix export's first sentence says what it split and the size class it wrote; the rest are notes.
+        done = f"Downloaded {_plain(filename)}" + (f": {_plain(notes[0])}." if format == "kinetix" else ".")
+        self.file_status.content = "\n\n".join([done] + [f"**Note:** {_plain(note)}" for note in notes[1:]])
 
     # ------------------------------------------------------------ editor -> widgets
 

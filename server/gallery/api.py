@@ -10,110 +10,81 @@ Cross-site and abuse rules: a body must be `Content-Type: application/json` (415
 site cannot send one with a "simple" form or text/plain request (server.web.security checks `Origin` too); writes
 and new identities are rate-limited per client (429 with Retry-After, server.gallery.limits); play statistics are
 not accepted from clients at all: the server records the plays it ran itself (`Store.record_play`, from
-server.play.gallery_tab). A browser's voter identity is a server-issued HttpOnly, SameSite=Strict cookie.
+server.play.gallery_tab). A vote counts only from an identity that played the level in such a play (its tab's
+author token), once per level.
 """
 
 from __future__ import annotations
 
 import json
-from typing import Any, Literal
+from collections.abc import Callable
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
-from pydantic import BaseModel, Field
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
+from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from server.gallery.checks import SIZES, SORTS, StoreError, Unauthorized, check_admin
+from server.gallery.checks import (
+    SIZES,
+    SORTS,
+    Invalid,
+    StoreError,
+    check_admin,
+    check_description,
+    check_name,
+    check_tags,
+    check_unicode,
+)
 from server.gallery.limits import RateLimited, RateLimits
+from server.gallery.models import (
+    CURSOR_PATTERN,
+    ID_PATTERN,
+    TEXT_PATTERN,
+    WRITE,
+    CreateBody,
+    Created,
+    LevelDetail,
+    LevelPage,
+    Ok,
+    Stats,
+    UpdateBody,
+    VoteBody,
+    VoteResult,
+    errors,
+    problem_text,
+)
 from server.gallery.runs import BestRuns
 from server.gallery.store import Store
 
 MAX_BODY = 1_000_000  # bytes
-VOTER_COOKIE = "kinetix_voter"  # a voter token (an author token) issued by the server, HttpOnly
-VOTER_COOKIE_AGE = 400 * 24 * 3600  # seconds; the most Chromium keeps a cookie
+LevelId = Annotated[str, Path(pattern=ID_PATTERN, max_length=32, description="a level's id")]
+VOTER_COOKIE = "kinetix_voter"  # a voter token earlier versions issued (HttpOnly); still read, no longer issued
 
 
-class Stats(BaseModel):
-    plays: int
-    human_plays: int
-    human_solved: int
-    human_solve_rate: float | None
-    agent_plays: int
-    agent_solved: int
-    agent_solve_rate: float | None
-    best_human_seconds: float | None
-    best_human_steps: int | None
-    has_best_run: bool = Field(description="a recording of the best human solve can be downloaded from "
-                                           "/api/levels/{id}/best-run.mcap")
-    votes_up: int
-    votes_down: int
-    score: int
+def _check_level(level: Any) -> None:
+    if not isinstance(level, dict):
+        raise Invalid(f"level: expected a JSON object in our format or the Kinetix format, got {type(level).__name__}")
 
 
-class LevelSummary(BaseModel):
-    id: str
-    name: str
-    description: str
-    author: str | None = Field(description="public author id (derived from the token; never the token)")
-    created: int = Field(description="milliseconds since the Unix epoch")
-    updated: int
-    parent: str | None = Field(description="the level this one remixes")
-    size: Literal["s", "m", "l", "xl"]
-    tags: list[str]
-    stats: Stats
-    thumbnail: str = Field(description="URL of the PNG thumbnail")
+def _check_parent(parent: Any) -> None:
+    if not isinstance(parent, str):
+        raise Invalid("parent: expected a level id string or null")
+    check_unicode("parent", parent)
 
 
-class LevelDetail(LevelSummary):
-    level: dict[str, Any] = Field(description="the level in our format (docs/level-format.md)")
-
-
-class LevelPage(BaseModel):
-    items: list[LevelSummary]
-    next: str | None = Field(description="cursor of the next page, null on the last page")
-
-
-class CreateBody(BaseModel):
-    name: str = Field(max_length=100)
-    description: str = Field("", max_length=2000)
-    tags: list[str] = Field(default_factory=list, max_length=10)
-    level: dict[str, Any] = Field(description="a level in our format or the public Kinetix format")
-    parent: str | None = Field(None, description="id of the level this remixes")
-
-
-class UpdateBody(BaseModel):
-    name: str | None = Field(None, max_length=100)
-    description: str | None = Field(None, max_length=2000)
-    tags: list[str] | None = Field(None, max_length=10)
-    level: dict[str, Any] | None = None
-
-
-class Created(BaseModel):
-    id: str
-    author_token: str | None = Field(description="a new secret author token, only when the request sent none")
-
-
-class VoteBody(BaseModel):
-    value: Literal[-1, 0, 1]
-
-
-class VoteResult(BaseModel):
-    up: int
-    down: int
-    score: int
-    value: int
-
-
-class Ok(BaseModel):
-    ok: bool
+FIELD_CHECKS = {"name": check_name, "description": check_description, "tags": check_tags, "level": _check_level,
+                "parent": _check_parent}
 
 
 def _body_doc(model: type[BaseModel]) -> dict:
     return {"requestBody": {"required": True, "content": {"application/json": {"schema": model.model_json_schema()}}}}
 
 
-async def read_json(request: Request, fields: dict[str, bool]) -> dict[str, Any]:
-    """The request body as a JSON object, at most MAX_BODY bytes, with only the known `fields`
-    ({name: required}); raises 415 / 413 / 400 / 422 before anything is stored."""
+async def read_json(request: Request, model: type[BaseModel]) -> dict[str, Any]:
+    """The request body as a JSON object, at most MAX_BODY bytes, valid for `model` (server.gallery.models: its
+    fields only, their types and limits); the fields it sent. Raises 415 / 413 / 400 / 422 before anything is
+    stored."""
+    fields = {name: info.is_required() for name, info in model.model_fields.items()}
     media_type = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     if media_type != "application/json":
         raise HTTPException(415, f"body must be sent as Content-Type: application/json, got {media_type[:80]!r}"
@@ -140,6 +111,15 @@ async def read_json(request: Request, fields: dict[str, bool]) -> dict[str, Any]
     missing = [name for name, required in fields.items() if required and name not in data]
     if missing:
         raise HTTPException(422, f"body: missing fields {', '.join(missing)}")
+    try:
+        for name, value in data.items():  # the store's own checks first: their messages say more
+            if value is not None and name in FIELD_CHECKS:
+                FIELD_CHECKS[name](value)
+        model.model_validate(data)
+    except StoreError as error:
+        raise HTTPException(error.status, error.message) from None
+    except ValidationError as error:
+        raise HTTPException(422, problem_text(error)) from None
     return data
 
 
@@ -181,15 +161,29 @@ def _public_vote(result: dict) -> dict:
     return {key: result[key] for key in ("up", "down", "score", "value")}
 
 
-def _with_thumbnail(item: dict) -> dict:
-    item["thumbnail"] = f"/api/levels/{item['id']}/thumbnail.png?v={item['updated']}"
+def _with_thumbnail(item: dict, request: Request) -> dict:
+    """The summary with its thumbnail's URL (under the server's --root-path, server.web.prefix)."""
+    root = request.scope.get("root_path", "")
+    item["thumbnail"] = f"{root}/api/levels/{item['id']}/thumbnail.png?v={item['updated']}"
     return item
 
 
-def make_router(store: Store, admin_token: str | None = None, limits: RateLimits | None = None) -> APIRouter:
+PREPARING_RETRY_S = 2  # a new gallery's seeding takes ~2-13 s (a thumbnail per project level)
+
+
+def make_router(store: Store, admin_token: str | None = None, limits: RateLimits | None = None,
+                ready: Callable[[], bool] | None = None) -> APIRouter:
     """The gallery API on `store`; `admin_token` (e.g. env KINETIX_ADMIN_TOKEN) may update or delete any level;
-    `limits` caps writes and new identities per client (default: RateLimits())."""
-    router = APIRouter(tags=["gallery"])
+    `limits` caps writes and new identities per client (default: RateLimits()). Until `ready()` is true (a new
+    gallery being seeded by `kinetix serve`'s warm-up) every route answers 503 with Retry-After, never an empty
+    gallery."""
+
+    def check_ready() -> None:
+        if ready is not None and not ready():
+            raise HTTPException(503, f"the gallery is being prepared: try again in {PREPARING_RETRY_S} s",
+                                headers={"Retry-After": str(PREPARING_RETRY_S)})
+
+    router = APIRouter(tags=["gallery"], dependencies=[Depends(check_ready)])
     limits = limits if limits is not None else RateLimits()
 
     def user_token(request: Request) -> str | None:
@@ -198,27 +192,30 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
             raise HTTPException(401, "the admin token can update and delete levels but not author or vote")
         return token
 
-    @router.get("/levels", response_model=LevelPage, summary="List levels, one page at a time")
+    @router.get("/levels", response_model=LevelPage, summary="List levels, one page at a time", responses=errors())
     async def list_levels(
+        request: Request,
         sort: Literal["newest", "top", "played", "hardest"] = Query("newest", description=", ".join(SORTS)),
         size: Literal["s", "m", "l", "xl"] | None = Query(None, description="size class: " + ", ".join(SIZES)),
-        tag: str | None = Query(None, max_length=32),
-        q: str | None = Query(None, max_length=100, description="search the name (case-insensitive)"),
-        author: str | None = Query(None, max_length=16),
+        tag: str | None = Query(None, max_length=32, pattern=TEXT_PATTERN),
+        q: str | None = Query(None, max_length=100, pattern=TEXT_PATTERN,
+                              description="search the name (case-insensitive)"),
+        author: str | None = Query(None, max_length=16, pattern=TEXT_PATTERN),
         limit: int = Query(24, ge=1, le=100),
-        cursor: str | None = Query(None, max_length=300, description="the previous page's `next`"),
+        cursor: str | None = Query(None, max_length=60, pattern=CURSOR_PATTERN,
+                                   description="the previous page's `next`"),
     ) -> dict:
         items, nxt = await call(store.list_levels, sort=sort, size=size, tag=tag, q=q, author=author, limit=limit,
                                 cursor=cursor)
-        return {"items": [_with_thumbnail(i) for i in items], "next": nxt}
+        return {"items": [_with_thumbnail(i, request) for i in items], "next": nxt}
 
     @router.post("/levels", response_model=Created, status_code=201, openapi_extra=_body_doc(CreateBody),
-                 summary="Save a new level (a new author token is returned when none is sent)")
+                 summary="Save a new level (a new author token is returned when none is sent)",
+                 responses=errors(401, *WRITE))
     async def create_level(request: Request) -> dict:
         limited(limits, "write", request)
         token = user_token(request)
-        data = await read_json(request, {"name": True, "description": False, "tags": False, "level": True,
-                                         "parent": False})
+        data = await read_json(request, CreateBody)
         if token is None:
             limited(limits, "identity", request)  # a new author
         level_id, new_token = await call(store.create_level, data["name"], data["level"],
@@ -226,33 +223,37 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
                                          token=token, parent=data.get("parent"))
         return {"id": level_id, "author_token": new_token}
 
-    @router.get("/levels/{level_id}", response_model=LevelDetail, summary="One level: metadata, stats, level")
-    async def get_level(level_id: str) -> dict:
-        return _with_thumbnail(await call(store.get_level, level_id))
+    @router.get("/levels/{level_id}", response_model=LevelDetail, summary="One level: metadata, stats, level",
+                responses=errors(404))
+    async def get_level(level_id: LevelId, request: Request) -> dict:
+        return _with_thumbnail(await call(store.get_level, level_id), request)
 
     @router.get("/levels/{level_id}/thumbnail.png", response_class=Response, summary="The level's PNG thumbnail",
-                responses={200: {"content": {"image/png": {}}}})
-    async def thumbnail(level_id: str) -> Response:
+                responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
+                           **errors(404)})
+    async def thumbnail(level_id: LevelId) -> Response:
         png = await call(store.thumbnail, level_id)
         # The listing links with ?v=<updated>, so a cached image is never stale.
         return Response(png, media_type="image/png", headers={"Cache-Control": "public, max-age=86400"})
 
     @router.put("/levels/{level_id}", response_model=Ok, openapi_extra=_body_doc(UpdateBody),
-                summary="Change a level (Authorization: Bearer <author or admin token>)")
-    async def update_level(level_id: str, request: Request) -> dict:
+                summary="Change a level (Authorization: Bearer <author or admin token>)",
+                responses=errors(401, 404, *WRITE))
+    async def update_level(level_id: LevelId, request: Request) -> dict:
         limited(limits, "write", request)
         token = bearer(request)
         admin = check_admin(token, admin_token)
         if token is None:
             raise HTTPException(401, "this needs the author's token: send Authorization: Bearer TOKEN")
         await call(store.thumbnail, level_id)  # 404 before reading a body for an unknown id
-        data = await read_json(request, {"name": False, "description": False, "tags": False, "level": False})
+        data = await read_json(request, UpdateBody)
         await call(store.update_level, level_id, None if admin else token, admin=admin, **data)
         return {"ok": True}
 
     @router.delete("/levels/{level_id}", response_model=Ok,
-                   summary="Delete a level (Authorization: Bearer <author or admin token>)")
-    async def delete_level(level_id: str, request: Request) -> dict:
+                   summary="Delete a level (Authorization: Bearer <author or admin token>)",
+                   responses=errors(401, 403, 404, 429))
+    async def delete_level(level_id: LevelId, request: Request) -> dict:
         limited(limits, "write", request)
         token = bearer(request)
         admin = check_admin(token, admin_token)
@@ -260,34 +261,26 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
         return {"ok": True}
 
     @router.post("/levels/{level_id}/vote", response_model=VoteResult, openapi_extra=_body_doc(VoteBody),
-                 summary="Vote +1, -1 or 0 (withdraw); one vote per voter per level. The voter is the Bearer "
-                         "author token if sent, else the kinetix_voter cookie, which is issued on the first vote")
-    async def vote(level_id: str, request: Request, response: Response) -> dict:
+                 summary="Vote +1, -1 or 0 (withdraw); one vote per identity per level, and only from an identity "
+                         "that played the level in the browser (the Bearer author token the tab keeps, or an "
+                         "older kinetix_voter cookie)", responses=errors(401, 404, *WRITE))
+    async def vote(level_id: LevelId, request: Request) -> dict:
         limited(limits, "write", request)
         token = user_token(request)
-        data = await read_json(request, {"value": True})
+        data = await read_json(request, VoteBody)
         value = data["value"]
         if not isinstance(value, int) or isinstance(value, bool) or value not in (-1, 0, 1):
             raise HTTPException(422, "value: expected 1 (up), -1 (down) or 0 (withdraw)")
         if token is None:
-            cookie = request.cookies.get(VOTER_COOKIE)
-            if cookie and len(cookie) <= 200:
-                try:
-                    return _public_vote(await call(store.vote, level_id, cookie, value))
-                except HTTPException as error:
-                    if error.status_code != Unauthorized.status:
-                        raise
-                    # an unknown cookie (e.g. a reset gallery): a new voter, like a first vote
-            await call(store.thumbnail, level_id)  # 404 for an unknown level before an identity is spent on it
-            limited(limits, "identity", request)
-        result = await call(store.vote, level_id, token, value)
-        if result.get("author_token"):
-            response.set_cookie(VOTER_COOKIE, result["author_token"], max_age=VOTER_COOKIE_AGE, path="/api",
-                                httponly=True, samesite="strict", secure=request.url.scheme == "https")
-        return _public_vote(result)
+            cookie = request.cookies.get(VOTER_COOKIE)  # issued by earlier versions; now the tab's token votes
+            token = cookie if cookie and len(cookie) <= 200 else None
+        if token is None:
+            await call(store.thumbnail, level_id)  # 404 for an unknown level first
+        return _public_vote(await call(store.vote, level_id, token, value))
 
-    @router.get("/levels/{level_id}/stats", response_model=Stats, summary="Plays, solve rates, best time, votes")
-    async def stats(level_id: str) -> dict:
+    @router.get("/levels/{level_id}/stats", response_model=Stats, summary="Plays, solve rates, best time, votes",
+                responses=errors(404))
+    async def stats(level_id: LevelId) -> dict:
         return await call(store.stats, level_id)
 
     runs = BestRuns(store) if store.recordings_dir is not None else None
@@ -296,8 +289,8 @@ def make_router(store: Store, admin_token: str | None = None, limits: RateLimits
                 summary="The MCAP recording of the level's best human solve (docs/recording.md)",
                 responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string",
                                                                                      "format": "binary"}}}},
-                           404: {"description": "unknown level, or no recorded best run yet"}})
-    async def best_run(level_id: str) -> Response:
+                           **errors(404)})
+    async def best_run(level_id: LevelId) -> Response:
         await call(store.thumbnail, level_id)  # 404 for an unknown id
         path = await call(runs.best_run_file, level_id) if runs is not None else None
         if path is None:

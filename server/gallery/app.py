@@ -20,8 +20,10 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from server.gallery.api import make_router
-from server.gallery.limits import RateLimits
+from server.gallery.limits import RateLimits, SharedRateLimits
+from server.gallery.models import problem_handlers
 from server.gallery.store import Store, open_store
+from server.web.proxies import TrustedProxies
 from server.web.security import LOCAL_HOSTS, WebSecurity, allowed_hosts_for
 
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
@@ -34,12 +36,14 @@ def gallery_page() -> FileResponse:
 
 
 def create_gallery_app(store: Store, admin_token: str | None = None, *, limits: RateLimits | None = None,
-                       allowed_hosts: Iterable[str] = LOCAL_HOSTS) -> FastAPI:
+                       allowed_hosts: Iterable[str] = LOCAL_HOSTS,
+                       trusted_proxies: TrustedProxies | None = None) -> FastAPI:
     """The gallery alone; requests must name one of `allowed_hosts` (server.web.security), writes and new
     identities are rate-limited by `limits` (default RateLimits())."""
     app = FastAPI(title="Kinetix gallery", version="1")
-    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)
+    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies)
     app.include_router(make_router(store, admin_token=admin_token, limits=limits), prefix="/api")
+    problem_handlers(app)  # 422s as {"detail": "..."}, the API's one error shape
     app.add_api_route("/gallery", gallery_page, include_in_schema=False)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app
@@ -55,11 +59,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-seed", action="store_true", help="do not seed an empty gallery from levels/")
     add_web_arguments(parser)
     args = parser.parse_args(argv)
+    try:
+        trusted = TrustedProxies.parse(args.trusted_proxies)
+    except ValueError as error:
+        parser.error(str(error))
     import uvicorn
 
     store = open_store(args.db, data_dir=args.data, **({"seed_dir": None} if args.no_seed else {}))
-    app = create_gallery_app(store, os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits_from(args),
-                             allowed_hosts=allowed_hosts_for(args.host, args.allowed_hosts))
+    app = create_gallery_app(store, os.environ.get("KINETIX_ADMIN_TOKEN"), limits=limits_from(args, store),
+                             allowed_hosts=allowed_hosts_for(args.host, args.allowed_hosts),
+                             trusted_proxies=trusted)
     uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
 
 
@@ -71,6 +80,9 @@ def add_web_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated host names or addresses clients may use in the URL besides the --host "
                              "address, localhost and 127.0.0.1 (any port); '*' allows any (not advised: DNS "
                              "rebinding)")
+    parser.add_argument("--trusted-proxies", default="", metavar="ADDRESSES",
+                        help="comma-separated addresses or networks of reverse proxies whose X-Forwarded-For, -Host "
+                             "and -Proto are believed; '*' any (default: none; docs/deploy.md)")
     parser.add_argument("--write-limit", type=float, default=defaults.writes_per_minute, metavar="N",
                         help="gallery writes (save, change, delete, vote) per minute per client address; 0 = no "
                              f"limit (default: {defaults.writes_per_minute:g})")
@@ -79,8 +91,13 @@ def add_web_arguments(parser: argparse.ArgumentParser) -> None:
                              f"(default: {defaults.identities_per_hour:g})")
 
 
-def limits_from(args: argparse.Namespace) -> RateLimits:
-    return RateLimits(writes_per_minute=args.write_limit, identities_per_hour=args.identity_limit)
+def limits_from(args: argparse.Namespace, store: Store | None = None) -> RateLimits:
+    """The rate limits of the arguments: in the database when it is PostgreSQL (several processes count together),
+    else in this process's memory."""
+    allowances = {"writes_per_minute": args.write_limit, "identities_per_hour": args.identity_limit}
+    if store is not None and store.dialect != "sqlite":
+        return SharedRateLimits(store, **allowances)
+    return RateLimits(**allowances)
 
 
 if __name__ == "__main__":

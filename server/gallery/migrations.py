@@ -70,6 +70,28 @@ MIGRATIONS: list[tuple[int, str, list[str]]] = [
             created BIGINT NOT NULL)""",
         "CREATE INDEX level_agents_level ON level_agents (level_id)",
     ]),
+    (4, "shared state for several server processes: drafts, best-run recordings, rate-limit buckets", [
+        """CREATE TABLE drafts (
+            id VARCHAR(64) PRIMARY KEY,
+            document {blob} NOT NULL,
+            updated BIGINT NOT NULL)""",
+        "CREATE INDEX drafts_updated ON drafts (updated)",
+        """CREATE TABLE recording_files (
+            name VARCHAR(255) PRIMARY KEY,
+            data {blob} NOT NULL,
+            created BIGINT NOT NULL)""",
+        """CREATE TABLE rate_buckets (
+            kind VARCHAR(16) NOT NULL,
+            client VARCHAR(64) NOT NULL,
+            tokens DOUBLE PRECISION NOT NULL,
+            stamp DOUBLE PRECISION NOT NULL,
+            PRIMARY KEY (kind, client))""",
+        "CREATE INDEX rate_buckets_stamp ON rate_buckets (stamp)",
+    ]),
+    (5, "who played: a vote counts only from an identity that played the level in a server-run play", [
+        "ALTER TABLE plays ADD COLUMN author_id VARCHAR(16) REFERENCES authors(id)",
+        "CREATE INDEX plays_level_author ON plays (level_id, author_id)",
+    ]),
 ]
 
 LATEST = MIGRATIONS[-1][0]

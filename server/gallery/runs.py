@@ -10,6 +10,13 @@ the `recording_path` of its play row. A new solve's recording is copied in only 
 the superseded row's `recording_path` is cleared and its file deleted. Files no row names (a crash between the
 copy and the insert, a deleted level) are removed by `remove_orphans` at start-up. Every other play's file lives
 only in the server's recent/ folder (server.recordings.recorder), one per tab.
+
+Several processes on one PostgreSQL gallery (docs/deploy.md) share the best runs: a kept recording is also
+stored in the table `recording_files` (its bytes, under the same name) in the transaction before its play row, and
+`best_run_file` fetches it into this process's recordings directory when it is not there yet (a cache: the name
+changes whenever the best run does, so a cached file is never stale). A best run is 20-100 KB (a ten-minute one a
+few MB) and a level keeps one, so a bytea row is the simplest shared storage that stays consistent with the play
+that names it; an object store would be a second service to run and back up for no gain at these sizes.
 """
 
 from __future__ import annotations
@@ -21,16 +28,18 @@ import shutil
 import threading
 from pathlib import Path
 
-from sqlalchemy import and_, select, update
+from sqlalchemy import and_, delete, select, update
 
 from server.gallery.checks import StoreError, check_id
 from server.gallery.proof import why_not_a_record
-from server.gallery.schema import plays_t
+from server.gallery.schema import now_ms, plays_t, recording_files_t
 from server.gallery.store import Store
 
 log = logging.getLogger(__name__)
 
 PREFIX = "best-"
+ORPHAN_AGE_S = 600  # a shared recording no play names is removed only when this old (another process may be
+#                     between storing the file and inserting its play row)
 
 
 def _best_rows(conn, level_id: str):
@@ -51,6 +60,7 @@ class BestRuns:
         self.directory = Path(store.recordings_dir)
         self.directory.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()  # one prune at a time in this process (the database orders the rest)
+        self.shared = store.dialect != "sqlite"  # several processes: the files live in recording_files too
         self._said_unrecorded = False
 
     def best_run_file(self, level_id: str) -> Path | None:
@@ -63,9 +73,23 @@ class BestRuns:
             if row.seconds > rows[0].seconds + 1e-9:  # a slower run is not the best time's
                 return None
             path = self.directory / row.recording_path
-            if path.is_file():
+            if path.is_file() or (self.shared and self._fetch(row.recording_path, path)):
                 return path
         return None
+
+    def _fetch(self, name: str, path: Path) -> bool:
+        """Copy a shared best run into this process's directory (temporary name, then rename); False if absent."""
+        with self.store._read() as conn:
+            row = conn.execute(select(recording_files_t.c.data).where(recording_files_t.c.name == name)).first()
+        if row is None:
+            return False
+        partial = self.directory / f".{name}.{secrets.token_hex(4)}.fetch.part"
+        try:
+            partial.write_bytes(bytes(row.data))
+            os.replace(partial, path)
+        finally:
+            partial.unlink(missing_ok=True)
+        return True
 
     def offer(self, level_id: str, source: Path | None, steps: int, seconds: float,
               player: str = "human") -> str | None:
@@ -94,6 +118,10 @@ class BestRuns:
                 log.warning("play on %s (%d steps, %.3f s) sets no best time: %s", level_id, steps, seconds, reason)
                 partial.unlink(missing_ok=True)
                 return None
+            if self.shared:
+                with self.store._write() as conn:
+                    conn.execute(recording_files_t.insert().values(name=name, data=partial.read_bytes(),
+                                                                   created=now_ms()))
             os.replace(partial, target)
         except OSError as error:
             partial.unlink(missing_ok=True)
@@ -104,6 +132,9 @@ class BestRuns:
     def discard(self, name: str) -> None:
         """Delete a copied file whose play could not be recorded (e.g. the level was deleted meanwhile)."""
         (self.directory / Path(name).name).unlink(missing_ok=True)
+        if self.shared:
+            with self.store._write() as conn:
+                conn.execute(delete(recording_files_t).where(recording_files_t.c.name == Path(name).name))
 
     def prune(self, level_id: str) -> list[Path]:
         """Keep only the best recorded human solve of the level: clear the others' recording_path and delete
@@ -115,6 +146,9 @@ class BestRuns:
                 if superseded:
                     conn.execute(update(plays_t).where(plays_t.c.id.in_([r.id for r in superseded]))
                                  .values(recording_path=None))
+                    if self.shared:
+                        conn.execute(delete(recording_files_t).where(
+                            recording_files_t.c.name.in_([r.recording_path for r in superseded])))
             removed = []
             for row in superseded:
                 path = self.directory / row.recording_path
@@ -128,6 +162,12 @@ class BestRuns:
         with self.store._read() as conn:
             named = {row[0] for row in conn.execute(select(plays_t.c.recording_path)
                                                     .where(plays_t.c.recording_path.is_not(None)))}
+        if self.shared:
+            with self.store._write() as conn:
+                conn.execute(delete(recording_files_t).where(
+                    recording_files_t.c.name.not_in(select(plays_t.c.recording_path)
+                                                    .where(plays_t.c.recording_path.is_not(None))),
+                    recording_files_t.c.created < now_ms() - ORPHAN_AGE_S * 1000))
         removed = []
         for path in self.directory.glob(f"{PREFIX}*.mcap"):
             if path.name not in named:

@@ -41,7 +41,15 @@ votes_t = Table("votes", _meta, Column("level_id", String(32)), Column("author_i
 plays_t = Table("plays", _meta, Column("id", BigInteger, primary_key=True), Column("level_id", String(32)),
                 Column("kind", String(8)), Column("solved", Boolean), Column("steps", Integer),
                 Column("seconds", Float), Column("created", BigInteger), Column("recording", LargeBinary),
-                Column("recording_path", String(255)))
+                Column("recording_path", String(255)), Column("author_id", String(16)))
+# Shared state of several server processes on one PostgreSQL database (migration 4; docs/deploy.md).
+drafts_t = Table("drafts", _meta, Column("id", String(64), primary_key=True), Column("document", LargeBinary),
+                 Column("updated", BigInteger))
+recording_files_t = Table("recording_files", _meta, Column("name", String(255), primary_key=True),
+                          Column("data", LargeBinary), Column("created", BigInteger))
+rate_buckets_t = Table("rate_buckets", _meta, Column("kind", String(16), primary_key=True),
+                       Column("client", String(64), primary_key=True), Column("tokens", Float),
+                       Column("stamp", Float))
 
 
 def now_ms() -> int:

@@ -74,6 +74,8 @@ from server.gallery.schema import (
 )
 
 REPO_LEVELS = Path(__file__).resolve().parents[2] / "levels"
+NOT_PLAYED = ("only someone who played this level may vote on it: play it in the browser (its Play link), then "
+              "vote from the same browser")
 
 
 class Store:
@@ -127,6 +129,16 @@ class Store:
     def author_of(self, token: str) -> str:
         with self._read() as conn:
             return self._author(conn, token)
+
+    def identity(self, token: str | None) -> tuple[str, bool]:
+        """(a token this gallery knows, whether it is new): `token` itself when it is known, else a new identity.
+        A tab keeps one identity for its saves and plays (server.play.gallery_tab)."""
+        if token:
+            with self._read() as conn:
+                if conn.execute(select(authors_t.c.id).where(authors_t.c.token_hash == token_hash(token))).first():
+                    return token, False
+        with self._write() as conn:
+            return self.new_author(conn)[1], True
 
     # ---- levels ----
     def create_level(self, name: str, level: dict, *, description: str = "", tags: list[str] | None = None,
@@ -203,35 +215,36 @@ class Store:
 
     # ---- votes and plays ----
     def vote(self, level_id: str, token: str | None, value: int) -> dict:
-        """Set this token's vote on a level (+1, -1, or 0 to withdraw); one vote per token per level.
+        """Set this identity's vote on a level (+1, -1, or 0 to withdraw); one vote per identity per level.
 
-        With no token, a new one is issued and returned as "author_token". Returns the level's vote counts.
+        Only an identity that played the level as a human in a play the server ran (`record_play(author=...)`)
+        may vote +1 or -1: a vote costs a real play, so new identities (cookie-less requests, scripts) add
+        nothing. Returns the level's vote counts.
         """
         check_id(level_id)
         if value not in (-1, 0, 1) or isinstance(value, bool):
             raise Invalid("value: expected 1 (up), -1 (down) or 0 (withdraw)")
+        if not token:
+            raise Forbidden(NOT_PLAYED)
         with self._write() as conn:
-            new_token = None
-            if token is None:
-                author, new_token = self.new_author(conn)
-            else:
-                author = self._author(conn, token)
+            author = self._author(conn, token)
             if conn.execute(select(levels_t.c.id).where(levels_t.c.id == level_id)).first() is None:
                 raise NotFound(f"no level with id {level_id!r}")
             if value == 0:
                 conn.execute(votes_t.delete().where(and_(votes_t.c.level_id == level_id,
                                                          votes_t.c.author_id == author)))
             else:
+                if conn.execute(select(plays_t.c.id).where(
+                        plays_t.c.level_id == level_id, plays_t.c.author_id == author,
+                        plays_t.c.kind == "human").limit(1)).first() is None:
+                    raise Forbidden(NOT_PLAYED)
                 # One statement that is atomic on both databases: no read-then-write race between voters.
                 conn.execute(text(
                     "INSERT INTO votes (level_id, author_id, value, created) VALUES (:l, :a, :v, :t) "
                     "ON CONFLICT (level_id, author_id) DO UPDATE SET value = excluded.value"),
                     {"l": level_id, "a": author, "v": value, "t": now_ms()})
             up, down = self._vote_counts(conn, level_id)
-        out = {"up": up, "down": down, "score": up - down, "value": value}
-        if new_token:
-            out["author_token"] = new_token
-        return out
+        return {"up": up, "down": down, "score": up - down, "value": value}
 
     def _vote_counts(self, conn: Connection, level_id: str) -> tuple[int, int]:
         row = conn.execute(select(func.count().filter(votes_t.c.value > 0), func.count().filter(votes_t.c.value < 0))
@@ -239,8 +252,10 @@ class Store:
         return int(row[0]), int(row[1])
 
     def record_play(self, level_id: str, kind: str, *, solved: bool, steps: int, seconds: float,
-                    recording: bytes | None = None, recording_path: str | None = None) -> int:
-        """Record one finished play; returns its id.
+                    recording: bytes | None = None, recording_path: str | None = None,
+                    author: str | None = None) -> int:
+        """Record one finished play; returns its id. `author`: the token of the identity that played (the tab's;
+        an unknown one records no player), which may then vote on the level.
 
         `recording_path` is a file name inside the recordings directory (no folders, no '..'): the server
         writes the MCAP there and stores only its name, so no request can point the gallery elsewhere.
@@ -261,10 +276,15 @@ class Store:
         if recording is not None and not isinstance(recording, (bytes, bytearray)):
             raise Invalid("recording: expected bytes")
         with self._write() as conn:
+            player = None
+            if author:
+                row = conn.execute(select(authors_t.c.id).where(authors_t.c.token_hash == token_hash(author))).first()
+                player = row.id if row is not None else None
             try:
                 result = conn.execute(plays_t.insert().values(
                     level_id=level_id, kind=kind, solved=solved, steps=steps, seconds=float(seconds),
-                    created=now_ms(), recording=recording, recording_path=recording_path).returning(plays_t.c.id))
+                    created=now_ms(), recording=recording, recording_path=recording_path,
+                    author_id=player).returning(plays_t.c.id))
                 return int(result.scalar_one())
             except IntegrityError:
                 raise NotFound(f"no level with id {level_id!r}") from None

@@ -3,14 +3,25 @@ states follow the session's mode."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-if TYPE_CHECKING:  # annotations only: the session imports this module
-    from server.play.session import Session
+
+class PlayControls(Protocol):
+    """What the Play folder's buttons drive (a Session is one): the folder never needs the whole session."""
+
+    def toggle_play(self) -> None: ...
+
+    def toggle_pause(self) -> None: ...
+
+    def single_step(self) -> None: ...
+
+    def play_again(self) -> None: ...
+
+    def stop(self) -> None: ...
 
 
 class PlayButtons:
-    def __init__(self, gui, session: Session):
+    def __init__(self, gui, session: PlayControls):
         with gui.add_folder("Play"):
             self.play = gui.add_button("Play (Space)", icon=None)
             self.pause = gui.add_button("Pause", disabled=True)
@@ -26,6 +37,7 @@ class PlayButtons:
     def update(self, mode: str) -> None:
         """Labels and states for this mode ("edit" | "ready" | "play" | "paused" | "ended" | "replay")."""
         self.play.label = "Play (Space)" if mode == "edit" else "Start (Space)" if mode == "ready" else "Stop (Space)"
+        self.play.visible = mode != "ended"  # an ended play has nothing to stop: Play again or Edit (Space: Edit)
         self.pause.disabled = mode not in ("play", "paused")
         self.pause.label = "Resume" if mode == "paused" else "Pause"
         self.step.disabled = mode not in ("play", "paused", "ready")

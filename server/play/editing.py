@@ -5,10 +5,20 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
-if TYPE_CHECKING:  # annotations only: the session imports this module
-    from server.play.session import Session
+
+class EditTarget(Protocol):
+    """What pointer input needs of a tab (a Session is one): its viser client, the screen-to-world mapping, the
+    editor calls and a redraw."""
+
+    client: Any
+
+    def world(self, screen_pos) -> tuple[float, float]: ...
+
+    def edit_call(self, method: str, *args, **kwargs) -> None: ...
+
+    def refresh(self, force: bool = False) -> None: ...
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +72,7 @@ class PlayOnlyEditor:
 class PointerInput:
     """Wires a session's viser scene events to its editor (Session.edit_call), in the arrival order."""
 
-    def __init__(self, session: Session):
+    def __init__(self, session: EditTarget):
         self.session = session
         self._wire()
 

@@ -21,9 +21,10 @@ from __future__ import annotations
 import html
 import json
 import logging
+from collections.abc import Callable
 from urllib.parse import parse_qs
 
-from server.gallery.checks import StoreError, Unauthorized
+from server.gallery.checks import StoreError
 from server.gallery.runs import BestRuns
 from server.gallery.store import Store
 
@@ -33,8 +34,11 @@ OPEN_LIST_SIZE = 50  # levels offered by "Open from gallery" (newest first); the
 
 
 class GalleryLink:
-    def __init__(self, store: Store, recorder=None):
+    def __init__(self, store: Store, recorder=None, open_replay: Callable[..., bool] | None = None):
         self.store = store
+        # `open_replay(session, path, title)` replays a recording in the tab (server.recordings.replay.open_best_run,
+        # given by server.app: recordings build on play, so play does not import them); None: no replays.
+        self.open_replay = open_replay
         # With the server's PlayRecorder, the best human solve of each level keeps its recording (runs.BestRuns);
         # without it (kinetix serve --no-record) the kept best runs can still be replayed.
         self.recorder = recorder
@@ -52,7 +56,7 @@ class GalleryLink:
         with gui.add_folder("Gallery"):
             save = gui.add_button("Save to gallery")
             open_ = gui.add_button("Open from gallery")
-            gui.add_markdown("[Browse the gallery](/gallery)")
+            gui.add_markdown("[Browse the gallery](gallery)")  # relative: also under --root-path
         save.on_click(lambda event: self._save_modal(session))
         open_.on_click(lambda event: self._open_modal(session))
 
@@ -109,19 +113,24 @@ class GalleryLink:
     # ------------------------------------------------------------------ actions (also the tests' entry points)
 
     def save(self, session, name: str, description: str = "", tags: list[str] | None = None) -> str:
-        """Save the tab's level; returns the new level's id. A stale author token is replaced by a new one."""
+        """Save the tab's level as the tab's identity; returns the new level's id. A stale author token is replaced
+        by a new identity, which the tab then keeps (`identity`)."""
         document = json.loads(session.editor.export("ours"))
         kwargs = dict(description=description, tags=tags or [], parent=session.gallery_id)
-        try:
-            level_id, new_token = self.store.create_level(name, document, token=session.author_token, **kwargs)
-        except Unauthorized:  # a token this gallery does not know (e.g. another server's): start a new author
-            level_id, new_token = self.store.create_level(name, document, token=None, **kwargs)
-        if new_token:
-            session.author_token = new_token
-            # keys.js copies it into localStorage, where the gallery page finds it too.
-            session.client.gui.add_html(f'<div id="kinetix-token" data-token="{html.escape(new_token)}" hidden></div>')
+        level_id, _ = self.store.create_level(name, document, token=self.identity(session), **kwargs)
         session.gallery_id = level_id
         return level_id
+
+    def identity(self, session) -> str:
+        """The tab's gallery identity (author token): the one it has if this gallery knows it, else a new one, kept
+        by the session and handed to the page (keys.js puts it in localStorage, where the gallery page and the next
+        session of this tab find it). One identity per tab: its saves, its plays and so its votes."""
+        token, new = self.store.identity(session.author_token)
+        if new:
+            session.author_token = token
+            # keys.js copies it into localStorage, where the gallery page finds it too.
+            session.client.gui.add_html(f'<div id="kinetix-token" data-token="{html.escape(token)}" hidden></div>')
+        return token
 
     def open(self, session, level_id: str) -> None:
         """Load a gallery level into the tab for editing (a later save is a remix of it)."""
@@ -148,14 +157,12 @@ class GalleryLink:
 
     def replay_best_run(self, session, level_id: str) -> bool:
         """Replay the level's best run in the tab (`?level=<id>&mode=replay`); a notification if it has none."""
-        from server.recordings.replay import open_best_run
-
         path = self.runs.best_run_file(level_id) if self.runs is not None else None
-        if path is None:
+        if path is None or self.open_replay is None:
             session.client.add_notification("No best run yet", "Nobody has solved this level with a recording yet: "
                                             "play it!", color="yellow")
             return False
-        return open_best_run(session, path, f"the best run of {session.editor.spec.name or level_id}")
+        return self.open_replay(session, path, f"the best run of {session.editor.spec.name or level_id}")
 
     def record_play(self, session, result: str, steps: int, seconds: float) -> None:
         if session.gallery_id is None:  # an unsaved level has no gallery entry to count the play against
@@ -168,8 +175,10 @@ class GalleryLink:
             return
         best = self.runs.candidate(self.recorder, session, result, steps, seconds) if self.runs else None
         try:
+            # A human play makes the tab's identity one that may vote on this level (Store.vote).
             self.store.record_play(level_id, kind, solved=result == "solved", steps=int(steps),
-                                   seconds=float(seconds), recording_path=best)
+                                   seconds=float(seconds), recording_path=best,
+                                   author=self.identity(session) if kind == "human" else None)
         except StoreError as error:  # e.g. the level was deleted meanwhile; a lost statistic is not worth a crash
             log.warning("play not recorded for %s: %s", level_id, error)
             if best is not None:

@@ -18,7 +18,8 @@ import collections
 import logging
 import secrets
 import threading
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -32,22 +33,37 @@ from server.play.scheduler import StepPlan
 from server.play.steps import DEFAULT_CLOCKWISE, PLAY_KEYS, action_from_keys, stepper_for
 from server.play.warmup import PREPARING
 
-if TYPE_CHECKING:  # annotations only: the manager imports this module
-    from server.play.manager import SessionManager
-
 __all__ = ["RESULT_TEXT", "START_HINT", "Controller", "PlayListener", "Session", "StepPlan", "episode_end"]
 
 log = logging.getLogger(__name__)
 
 RESULT_TEXT = {"solved": "You won!", "failed": "You lost.", "truncated": "Time is up.", "nan": "The simulation broke.",
                "stopped": "Stopped."}
+SNAP_PIXELS = 6  # on screen: how close the pointer must come to a feature to snap to it (server.editor.gestures)
+MAX_FIELDS = 32  # text fields taken from one dialog (set_fields)
 START_HINT = "Press Space or an arrow key to start"  # on the canvas while a play waits for the player (mode "ready")
+
+
+class SessionHost(Protocol):
+    """What a session needs of its manager (server.play.manager.SessionManager is one; it imports this module, so
+    this one names only the part it uses)."""
+
+    editor_factory: Callable | None
+    on_session_gui: Callable[[Session], None] | None
+    on_play_end: Callable[[Session, str, int, float], None] | None
+    scheduler: Any  # server.play.scheduler.PlayScheduler: add(), wake()
+    encoder: Any  # concurrent.futures.Executor of the frame encoders
+    warmup: Any  # server.play.warmup.WarmUp or None
+
+    def notify(self, event: str, *args) -> None: ...
+
+    def preparing(self) -> str | None: ...
 
 
 class Session(PlayLoop):
     """One tab. Build with SessionManager; `client` is a viser ClientHandle (or a test double with .scene/.gui)."""
 
-    def __init__(self, client, manager: SessionManager, level=None, size: str = "m"):
+    def __init__(self, client, manager: SessionHost, level=None, size: str = "m"):
         editor_factory = manager.editor_factory or default_editor_factory()
         self.client = client
         self.manager = manager
@@ -80,6 +96,10 @@ class Session(PlayLoop):
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self.replay = None  # a server.recordings.replay.Replay while the tab shows a recording (mode "replay")
         self.ended_player = "human"  # the player of the last play that ended (see finish_step)
+
+        # The level first, then the panel: the page draws this frame before viser builds the panel, which keeps
+        # the browser's main thread busy for a second or more (the canvas stayed blank that long, issue 37).
+        self._push_frame()
         self._build_gui()
         self._pointer = PointerInput(self)
         self.refresh(force=True)
@@ -134,8 +154,10 @@ class Session(PlayLoop):
             except Exception:  # an editor bug must not kill the tab; it is logged and shown
                 log.exception("editor.%s failed", method)
                 message = f"internal error in {method}"
-            if isinstance(message, str):
+            if isinstance(message, str) and self.editor.overlay() is None:  # a stand-in without an overlay
                 self._message = message
+            # The editor's own message (a refusal, "no polygon left: ...") is drawn from its overlay and goes when
+            # the editor clears it (the next edit, Move to size, Esc); kept here, it outlived its cause (issue 37).
             if self.panel is not None and hasattr(self.panel, "refresh"):
                 self.panel.refresh()
             self.refresh()
@@ -170,6 +192,18 @@ class Session(PlayLoop):
                 self.manager.scheduler.wake()
             elif kind == "down" and code == "Escape":
                 self.stop()
+
+    def set_fields(self, values) -> None:
+        """The values of a dialog's text fields as the page shows them, sent by keys.js before a click on one of
+        the dialog's buttons: viser's client can drop a field's update that came just before another one."""
+        if not isinstance(values, dict):
+            return
+        with self.lock:
+            handles = getattr(getattr(self.client, "gui", None), "_gui_input_handle_from_uuid", {})
+            for uuid, value in list(values.items())[:MAX_FIELDS]:
+                handle = handles.get(uuid) if isinstance(uuid, str) else None
+                if handle is not None and isinstance(value, str) and isinstance(handle.value, str):
+                    handle.value = value  # text fields only; an unchanged value sends nothing
 
     def release_all_keys(self) -> None:
         with self.lock:
@@ -358,6 +392,8 @@ class Session(PlayLoop):
         """The current frame as RGB (height, width, 3) uint8 at the canvas size."""
         self._view = self.canvas()
         if self.mode == "edit":
+            if hasattr(type(self.editor), "snap_radius") or "snap_radius" in vars(self.editor):
+                self.editor.snap_radius = SNAP_PIXELS / self._view.scale  # the same few pixels at any canvas size
             level = self.editor.level_file().level
             overlay = self.editor.overlay()
             message = getattr(overlay, "message", None) or self._message

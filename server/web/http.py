@@ -17,18 +17,19 @@ the outside world (viser itself listens on an ephemeral port of 127.0.0.1):
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import weakref
 from pathlib import Path
 
-import websockets
 from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, PlainTextResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.web.security import LOCAL_HOSTS, WebSecurity
+from server.web.prefix import UnderPath, normalise
+from server.web.proxies import TrustedProxies
+from server.web.relay import relay_to_viser
+from server.web.security import LOCAL_HOSTS, VISER_PAGE_CONTENT_SECURITY_POLICY, WebSecurity
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +39,6 @@ MAX_KEY_MESSAGE = 1024  # bytes; anything longer is not a key event
 # The largest message a browser may send on any websocket of the side server (uvicorn's ws_max_size): viser's
 # client uploads files in 512 KiB parts, msgpack-framed. Key events are cut at MAX_KEY_MESSAGE anyway.
 MAX_BROWSER_MESSAGE = 1 << 20
-UNSENDABLE_CLOSE_CODES = (1005, 1006, 1015)  # reported by a websocket library, never sent in a close frame
-VISER_HOST = "127.0.0.1"  # viser listens here only; browsers reach it through the relay below
 
 
 def viser_index_html() -> str:
@@ -52,7 +51,8 @@ def inject(page: str) -> str:
     """The viser page with our frame display, key script and labels right after <head> (before viser's code).
 
     The paths are relative to the page, so a reverse proxy may serve the app under a path of its own."""
-    snippet = ('<script src="static/frames.js"></script><script src="static/keys.js"></script>'
+    snippet = ('<script src="static/passive.js"></script>'  # first: before any listener is added
+               '<script src="static/frames.js"></script><script src="static/keys.js"></script>'
                '<script src="static/labels.js"></script>')  # labels.js ties viser's labels to their inputs
     head = page.find("<head>")
     if head < 0:
@@ -61,20 +61,26 @@ def inject(page: str) -> str:
 
 
 def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
-               gallery_router: APIRouter | None = None, allowed_hosts=LOCAL_HOSTS) -> FastAPI:
+               gallery_router: APIRouter | None = None, allowed_hosts=LOCAL_HOSTS,
+               trusted_proxies: TrustedProxies | None = None, root_path: str = "",
+               relay_token: str | None = None) -> FastAPI:
     """The side server's app. `manager` is a server.play.session.SessionManager (it maps nonces to sessions).
-    Requests must name one of `allowed_hosts` (server.web.security: Host/Origin checks, security headers)."""
+    Requests must name one of `allowed_hosts` (server.web.security: Host/Origin checks, security headers), and
+    X-Forwarded-* headers count only from `trusted_proxies` (server.web.proxies). With `root_path` ("/kinetix/")
+    every route is served under that path instead of the root (server.web.prefix). `relay_token`: what viser's
+    internal port asks of the relay (server.web.relay)."""
     app = FastAPI(title="Kinetix playground", docs_url="/docs", openapi_url="/openapi.json")
-    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts)  # also guards the relay of viser's websocket
     page = inject(viser_index_html())
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def index() -> HTMLResponse:
-        return HTMLResponse(page, headers={"Cache-Control": "no-store"})
+        # viser's client needs a policy of its own (server.web.security); the middleware keeps a header already set.
+        return HTMLResponse(page, headers={"Cache-Control": "no-store",
+                                           "Content-Security-Policy": VISER_PAGE_CONTENT_SECURITY_POLICY})
 
     @app.websocket("/")
     async def viser_socket(socket: WebSocket) -> None:
-        await relay_to_viser(socket, viser_port)
+        await relay_to_viser(socket, viser_port, relay_token)
 
     @app.get("/health", response_class=PlainTextResponse, include_in_schema=False)
     def health() -> str:
@@ -88,7 +94,10 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
         return FileResponse(static_dir / "gallery.html")
 
     if gallery_router is not None:
+        from server.gallery.models import problem_handlers
+
         app.include_router(gallery_router, prefix="/api")
+        problem_handlers(app)  # 422s as {"detail": "..."}, the API's one error shape
 
     opened: weakref.WeakSet = weakref.WeakSet()  # sessions whose page query was handled (the first hello)
 
@@ -127,6 +136,10 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 if kind == "blur":
                     session.release_all_keys()
                     continue
+                if kind == "fields":  # a dialog's text fields, sent before its button's click (keys.js)
+                    await asyncio.get_running_loop().run_in_executor(None, session.set_fields, event.get("values"))
+                    await socket.send_text(json.dumps({"type": "fields_ack", "id": event.get("id")}))
+                    continue
                 if kind not in ("down", "up") or not isinstance(code, str):
                     continue
                 seq = event.get("seq")
@@ -140,56 +153,12 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 session.release_all_keys()  # a closed key socket must not leave a thruster firing
 
     app.mount("/static", StaticFiles(directory=static_dir), name="static")
+    # The last added is the outermost: the path prefix, then the security checks (which also guard the relay of
+    # viser's websocket).
+    app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies)
+    if normalise(root_path):
+        app.add_middleware(UnderPath, root_path=root_path)
     return app
-
-
-async def relay_to_viser(socket: WebSocket, viser_port: int) -> None:
-    """Relay one browser websocket to viser's internal port, message for message, both ways, until either closes.
-
-    The browser's subprotocol (viser-v<version>) is passed on, and viser's choice and close code come back, so
-    viser's own version check still works. No compression on the loopback leg: viser's windows are zstd and JPEG.
-    """
-    offered = [p.strip() for p in socket.headers.get("sec-websocket-protocol", "").split(",") if p.strip()]
-    try:
-        upstream = await websockets.connect(f"ws://{VISER_HOST}:{viser_port}", subprotocols=offered or None,
-                                            compression=None, max_size=None, ping_interval=None, open_timeout=10)
-    except (OSError, TimeoutError, websockets.InvalidHandshake) as error:
-        log.warning("viser's websocket is not reachable: %s", error)
-        await socket.close(code=1011, reason="the viewer is not running")
-        return
-    await socket.accept(subprotocol=upstream.subprotocol)
-
-    async def to_viser() -> None:
-        while True:
-            message = await socket.receive()
-            if message["type"] == "websocket.disconnect":
-                return
-            data = message.get("bytes")
-            await upstream.send(data if data is not None else message.get("text") or "")
-
-    async def to_browser() -> None:
-        with contextlib.suppress(websockets.ConnectionClosed):
-            async for data in upstream:
-                if isinstance(data, bytes):
-                    await socket.send_bytes(data)
-                else:
-                    await socket.send_text(data)
-
-    tasks = [asyncio.create_task(to_viser()), asyncio.create_task(to_browser())]
-    try:
-        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for task in tasks:
-            task.cancel()
-        for task in tasks:  # a send into a closed socket ends its task with an error; nothing is left to relay
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
-        await upstream.close()
-        code = upstream.close_code
-        if code is None or code in UNSENDABLE_CLOSE_CODES:
-            code = 1011  # viser went away without a proper close (e.g. a server restart)
-        with contextlib.suppress(Exception):  # the browser may have gone already
-            await socket.close(code=code, reason=upstream.close_reason or "")
 
 
 async def _receive(socket: WebSocket) -> dict:

@@ -2,6 +2,8 @@
 
     app.add_middleware(WebSecurity, allowed_hosts=allowed_hosts_for("127.0.0.1", ["kinetix.local"]))
 
+- **Trusted proxies** (server.web.proxies): from a proxy named with --trusted-proxies, X-Forwarded-For, -Host and
+  -Proto replace the peer address, Host and scheme before the checks below (from anyone else they are ignored).
 - **Host check** (DNS rebinding): a request whose `Host` header names no allowed host gets 400 (a websocket is
   refused before it opens). Without it a page on `evil.example` whose name later resolves to 127.0.0.1 could read
   and write the gallery of a server on the user's laptop.
@@ -24,6 +26,8 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable
 
+from server.web.proxies import TrustedProxies
+
 UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
 ANY_HOST = "*"
@@ -41,6 +45,12 @@ CONTENT_SECURITY_POLICY = "; ".join([
     "form-action 'self'",
     "frame-ancestors 'self'",
 ])
+# viser's page (the editor at /) only: viser 1.1.1's client holds an Emscripten (embind) module, its splat sorter,
+# which builds its class constructors with `new Function(...)` as the client loads. Without 'unsafe-eval' every
+# load threw an uncaught EvalError (31 of 31 loads, issue 37); nothing of ours evaluates strings. The gallery page,
+# the API and the static files keep the policy above.
+VISER_PAGE_CONTENT_SECURITY_POLICY = CONTENT_SECURITY_POLICY.replace(
+    "'wasm-unsafe-eval'", "'unsafe-eval' 'wasm-unsafe-eval'")
 # FastAPI's /docs (Swagger UI) and /redoc pages load their code, styles, fonts and icon from public CDNs.
 DOCS_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")
 DOCS_CONTENT_SECURITY_POLICY = "; ".join([
@@ -102,14 +112,16 @@ def origin_matches(origin: str, host_header: str) -> bool:
 class WebSecurity:
     """ASGI middleware: Host and Origin checks, security headers (see the module docstring)."""
 
-    def __init__(self, app, allowed_hosts: Iterable[str] = LOCAL_HOSTS):
+    def __init__(self, app, allowed_hosts: Iterable[str] = LOCAL_HOSTS, trusted_proxies: TrustedProxies | None = None):
         self.app = app
         self.allowed_hosts = frozenset(h.lower() for h in allowed_hosts)
+        self.trusted_proxies = trusted_proxies or TrustedProxies()
 
     async def __call__(self, scope, receive, send) -> None:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
+        scope = self.trusted_proxies.apply(scope)  # a trusted proxy's X-Forwarded-* first: the checks use them
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         host = headers.get("host", "")
         problem = None
@@ -129,7 +141,9 @@ class WebSecurity:
             await self.app(scope, receive, send)
             return
 
-        extra = DOCS_HEADERS if scope.get("path") in DOCS_PATHS else SECURITY_HEADERS
+        path, root = scope.get("path", ""), scope.get("root_path", "")
+        extra = DOCS_HEADERS if (path[len(root):] if root and path.startswith(root) else path) in DOCS_PATHS \
+            else SECURITY_HEADERS
 
         async def send_with_headers(message) -> None:
             if message["type"] == "http.response.start":

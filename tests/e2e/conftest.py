@@ -1,6 +1,9 @@
 """Browser end-to-end tests: the real server in this process and the apt Chromium driven by playwright.
 
 Skipped when Chromium or playwright is missing, unless CI=true (then they fail: CI must run them).
+
+Every page of every browser context a test opens is watched: a console error (a CSP violation among them, which
+Chromium reports as one) or an uncaught exception in a page fails the test, after it ran (`page_errors`).
 """
 
 from __future__ import annotations
@@ -28,6 +31,27 @@ def _missing() -> str | None:
     return None
 
 
+# What the pages of the running test reported as errors: console errors (CSP violations included) and uncaught
+# exceptions, as "<url>: <text>". The autouse fixture `page_errors` empties it before each test and fails the test
+# if anything is in it afterwards.
+PAGE_ERRORS: list[str] = []
+
+
+def _console_error(message) -> None:
+    if message.type == "error":
+        PAGE_ERRORS.append(f"{message.location.get('url') or message.page and message.page.url}: {message.text}")
+
+
+def _web_error(error) -> None:
+    PAGE_ERRORS.append(f"{error.page.url if error.page else '?'}: uncaught {error.error}")
+
+
+def watch_context(context) -> None:
+    """Collect every console error and uncaught exception of the context's pages into PAGE_ERRORS."""
+    context.on("console", _console_error)
+    context.on("weberror", _web_error)
+
+
 @pytest.fixture(scope="session")
 def browser():
     reason = _missing()
@@ -39,8 +63,25 @@ def browser():
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--use-gl=swiftshader"])
+        new_context = browser.new_context
+
+        def watched_context(*args, **kwargs):  # every context, the tests' own included, is watched
+            context = new_context(*args, **kwargs)
+            watch_context(context)
+            return context
+
+        browser.new_context = watched_context
         yield browser
         browser.close()
+
+
+@pytest.fixture(autouse=True)
+def page_errors():
+    """Fail the test if any page reported a console error, a CSP violation or an uncaught exception."""
+    PAGE_ERRORS.clear()
+    yield PAGE_ERRORS
+    errors, PAGE_ERRORS[:] = list(PAGE_ERRORS), []
+    assert not errors, "the browser reported errors:\n" + "\n".join(errors)
 
 
 def wait_js(page, expression: str, timeout: float = 60.0) -> None:

@@ -70,3 +70,38 @@ def test_watch_agent_from_a_gallery_card_and_race_from_the_agent_folder(browser,
         tab.assert_local_only()
     finally:
         tab.close()
+
+
+# Logs the kinds of messages viser's worker hands the page, in order (installed before the page's own scripts).
+MESSAGE_LOG = """(() => { const Viser = window.Worker; window.__messages = [];
+  function Logged(url, options) { const worker = new Viser(url, options);
+    worker.addEventListener('message', (event) => { const data = event.data;
+      if (data && data.type === 'message_batch') for (const m of data.messages)
+        window.__messages.push(m.type === 'BackgroundImageMessage' ? (m.rgb_data ? 'frame' : 'clear') : m.type); });
+    return worker; }
+  Logged.prototype = Viser.prototype; window.Worker = Logged; })()"""
+
+
+def test_watch_agent_shows_the_level_before_the_panel(browser, app):
+    """The first thing a new tab draws is its level: the session sends its frame before building the panel (which
+    keeps the browser busy for a second or more), and no start-up "clear the background" of viser's hides it (the
+    canvas stayed blank for ~1.2 s before the level appeared)."""
+    level_id, _ = app.store.create_level("E2E agent first frame", to_document(build(falling_win_spec())))
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        page = tab.context.new_page()
+        page.add_init_script(MESSAGE_LOG)
+        page.goto(app.url + f"?level={level_id}&mode=agent")
+        wait_js(page, "window.__kinetixFrames && window.__kinetixFrames.drawn > 0")
+        messages = page.evaluate("window.__messages")
+        first_frame = messages.index("frame")
+        assert "clear" not in messages[:first_frame], messages[:first_frame + 1]
+        panel = [k for k, kind in enumerate(messages) if kind == "GuiButtonMessage"]
+        assert panel and first_frame < panel[0], f"the panel came first: {messages[:first_frame + 1]}"
+        wait_js(page, "window.__kinetixKeys && window.__kinetixKeys.ready()")
+        session = app.manager.session_by_nonce(page.get_attribute("#kinetix-session", "data-nonce"))
+        _wait(lambda: session.gallery_id == level_id and session.player.startswith("agent"))
+        page.close()
+        tab.assert_local_only()
+    finally:
+        tab.close()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.e2e.conftest import LEVELS, Tab
+from tests.e2e.conftest import LEVELS, Tab, canvas_box
 from tests.server.conftest import running_app, wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -120,6 +120,109 @@ def test_export_and_reimport_give_the_same_level(browser, car_app, tmp_path):
             page.get_by_role("button", name="Upload level", exact=True).click()
         chooser.value.set_files(str(saved))
         _wait(lambda: editor.export("ours") == original)
+        tab.assert_local_only()
+    finally:
+        tab.close()
+
+
+def _message_ink(png: bytes) -> np.ndarray:
+    """Mask of the editor message's red ink in a screenshot, dark or bright red and blended into any background by
+    anti-aliasing (not the red role's pink, which is brighter)."""
+    rgb = _pixels(png)
+    return (rgb[..., 0] - rgb[..., 1:].max(axis=2) > 60) & (rgb[..., 0] < 235)
+
+
+def test_a_size_refusal_message_is_readable_clear_of_the_gizmo_and_goes_with_move_to_size(browser, app):
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        page, editor = tab.page, tab.session.editor
+        box = canvas_box(page)
+
+        def shot() -> bytes:
+            return tab.canvas_png(round(box["y"]), round(box["height"]), round(box["x"] + box["width"]))
+
+        page.get_by_role("button", name="Rect", exact=True).click()
+        _wait(lambda: editor.tool == "rectangle")
+        page.wait_for_timeout(500)
+        gizmo = _message_ink(shot())  # red before any message: viser's axes gizmo (its x axis)
+
+        def ink(png: bytes) -> np.ndarray:
+            return _message_ink(png) & ~gizmo
+
+        free = editor.limits()["polygons"][1] - editor.limits()["polygons"][0]
+        for n in range(free + 1):  # the last one is refused: the size class is full
+            tab.drag((0.8 + 1.1 * n, 1.0), (1.4 + 1.1 * n, 1.4))
+        _wait(lambda: "no polygon left" in (editor.message or ""))
+        _wait(lambda: ink(shot()).sum() > 50)
+        png = shot()
+        ys, xs = np.nonzero(ink(png))
+        height = gizmo.shape[0]
+        # viser's axes gizmo takes the canvas's bottom-left corner (about 60 x 60 pixels): the message keeps clear.
+        assert xs.min() > 70 or ys.max() < height - 70, "the message is under viser's axes gizmo"
+        around = _pixels(png)[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
+        paper = around[~ink(png)[ys.min():ys.max() + 1, xs.min():xs.max() + 1]].mean(axis=1)
+        assert np.median(paper) > 200, "the message is drawn on a light background, not on the dark floor"
+
+        page.get_by_role("button", name="Move to size l", exact=True).click()
+        _wait(lambda: editor.size.name == "l" and editor.limits()["polygons"][0] == 4 + free + 1)
+        # The refusal's cause is gone: so is its message, on the canvas too (it stayed until a reload).
+        _wait(lambda: ink(shot()).sum() == 0)
+        tab.drag((3.0, 3.0), (3.5, 3.5))  # a later edit, then Esc: still no message
+        _wait(lambda: editor.limits()["polygons"][0] == 4 + free + 2)
+        page.keyboard.press("Escape")
+        page.wait_for_timeout(500)
+        assert ink(shot()).sum() == 0
+        tab.assert_local_only()
+    finally:
+        tab.close()
+
+
+def test_a_hinge_snaps_only_from_a_few_pixels_and_no_guide_stays_after_it(browser, app):
+    """A hinge clicked 10 pixels below the top of a circle stays where it was clicked (it was moved to the top:
+    the snap radius was 0.08 m, 11 pixels here); one clicked 2 pixels from the top snaps to it, shows the ring of
+    what it snapped to, and no guide line stays on the canvas after the edit."""
+    from server.editor import selection as sel
+
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        page, editor = tab.page, tab.session.editor
+        box = canvas_box(page)
+        page.get_by_role("button", name="New level", exact=True).click()
+        _wait(lambda: len(editor.spec.bodies) == 4)
+        page.get_by_role("button", name="Rect", exact=True).click()
+        _wait(lambda: editor.tool == "rectangle")
+        tab.drag((1.5, 0.9), (2.5, 1.6))
+        page.get_by_role("button", name="Circle", exact=True).click()
+        _wait(lambda: editor.tool == "circle" and len(editor.spec.bodies) == 5)
+        tab.drag((2.0, 1.2), (2.2, 1.2))
+        _wait(lambda: len(editor.spec.bodies) == 6)
+        circle = editor.spec.bodies[5]
+        top = (circle.position[0], circle.position[1] + circle.radius)
+        pixels_per_metre = tab.xy(1.0, 0.0)[0] - tab.xy(0.0, 0.0)[0]
+        editor.grid = 0.0  # the grid off: only the features snap
+        page.get_by_role("button", name="Hinge", exact=True).click()
+        _wait(lambda: editor.tool == "revolute")
+
+        page.mouse.click(*tab.xy(top[0], top[1] - 10 / pixels_per_metre))  # 10 pixels below the top
+        _wait(lambda: len(editor.spec.joints) == 1)
+        at = sel.joint_point(editor.spec, editor.spec.joints[0])
+        assert abs(at[1] - top[1]) * pixels_per_metre > 7, f"snapped from 10 pixels away to {at} (top {top})"
+
+        page.keyboard.press("Control+z")
+        _wait(lambda: not editor.spec.joints)
+        page.mouse.click(*tab.xy(top[0] + 1 / pixels_per_metre, top[1] - 2 / pixels_per_metre))  # 2 pixels off
+        _wait(lambda: len(editor.spec.joints) == 1)
+        at = sel.joint_point(editor.spec, editor.spec.joints[0])
+        assert at == pytest.approx(top, abs=1e-6), "a click right by the circle's top snaps to it"
+        page.wait_for_timeout(700)
+        shot = _pixels(tab.canvas_png(round(box["y"]), round(box["height"]), round(box["x"] + box["width"])))
+        guide = (np.abs(shot - np.array([255, 0, 160])).max(axis=2) < 60)
+        ys, xs = np.nonzero(guide)
+        assert len(xs), "the ring of the point it snapped to is shown"
+        ring = 0.05 * pixels_per_metre + 4  # the ring's radius (server.play.draw) and its line
+        cx, cy = tab.xy(*top)
+        assert (np.hypot(xs + 0.5 - cx, ys + 0.5 - (cy - box["y"])) <= ring + 3).all(), \
+            "a snap guide line is still on the canvas after the edit"
         tab.assert_local_only()
     finally:
         tab.close()

@@ -61,3 +61,54 @@ def test_more_levels_shows_the_second_page_once_and_then_hides(browser, tmp_path
     finally:
         server.kill()
         server.wait()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_a_first_visit_while_the_gallery_fills_shows_its_levels_by_itself(browser, tmp_path: Path, page_errors):
+    """Right after a server starts, the gallery may still be filling: an empty first page, or 503 with Retry-After.
+    The page says so and loads again by itself (it used to stay on "No levels match."). Cards sit right under the
+    controls (no empty band) and show the level's description."""
+    db = tmp_path / "gallery.sqlite3"
+    Store(f"sqlite:///{db}", seed_dir=None).close()
+    port = _free_port()
+    server = _start_server(db, port)
+    context = browser.new_context()
+    try:
+        page = context.new_page()
+        page.goto(f"http://127.0.0.1:{port}/gallery")
+        wait_js(page, "/no levels yet/.test(document.getElementById('status').textContent)")
+        store = Store(f"sqlite:///{db}", seed_dir=None)  # the levels arrive after the page was loaded
+        store.create_level("ramp", {}, description="Jump the gap\nwith the blue car.",
+                           prepared=SavedLevel("m", json.dumps(level_doc()), b"png"))
+        store.close()
+        wait_js(page, "document.querySelectorAll('article.card').length === 1", timeout=20)
+        card = page.locator("article.card")
+        assert card.locator(".description").inner_text() == "Jump the gap\nwith the blue car."
+        assert card.locator(".description").is_visible()
+        wait_js(page, "document.getElementById('status').textContent === ''")
+        gap = page.evaluate("""() => document.getElementById('grid').getBoundingClientRect().top
+                                      - document.getElementById('controls').getBoundingClientRect().bottom""")
+        assert gap < 12, f"an empty band of {gap} px above the cards"
+
+        # A server still preparing answers 503 with Retry-After: the page says so and asks again after it.
+        answers = []
+
+        def preparing_once(route):
+            answers.append(route.request.url)
+            if len(answers) == 1:
+                route.fulfill(status=503, headers={"Retry-After": "1", "Content-Type": "application/json"},
+                              body=json.dumps({"detail": "the gallery is being prepared"}))
+            else:
+                route.continue_()
+
+        page.route("**/api/levels?*", preparing_once)
+        page.reload()
+        wait_js(page, "/being prepared/.test(document.getElementById('status').textContent)")
+        wait_js(page, "document.querySelectorAll('article.card').length === 1", timeout=20)
+        assert len(answers) == 2
+        page_errors[:] = [e for e in page_errors if "status of 503" not in e]  # the 503 itself, as Chromium logs it
+    finally:
+        context.close()
+        server.kill()
+        server.wait()

@@ -82,6 +82,14 @@ def test_play_link_waits_for_the_first_key_then_right_rolls_car_right_right(brow
         tab.page.keyboard.up("ArrowRight")
         assert session._result == "solved", "holding Right drives car right to the blue ball on its right"
         assert _chassis_x(session) > 2.0 > float(start[4, 0])
+        # The play is over: the Play folder offers Play again and Edit, and nothing to stop.
+        panel = tab.page.get_by_role("button", name="Play again", exact=True)
+        panel.wait_for(timeout=10_000)
+        assert tab.page.get_by_role("button", name="Edit", exact=True).is_visible()
+        assert tab.page.get_by_role("button", name="Stop (Space)", exact=True).count() == 0
+        tab.page.keyboard.press("Space")  # Space goes back to editing, as Edit does
+        _wait(lambda: session.mode == "edit")
+        tab.page.get_by_role("button", name="Play (Space)", exact=True).wait_for(timeout=10_000)
         tab.assert_local_only()
     finally:
         tab.close()
@@ -153,5 +161,43 @@ def test_the_best_run_is_the_play_that_set_the_best_time_a_race_win_included(bro
         kept = read_recording(app.agents.runs.best_run_file(level_id), frames=False)
         assert kept.num_steps == race.human.steps and kept.solved
         tab.assert_local_only()
+    finally:
+        tab.close()
+
+
+def test_notices_leave_the_race_banner_and_the_middle_banner_clear(browser, app):
+    from kinetix.agents.policy import load_policy
+    from server.agents.play import observing_env, race_banner_box
+
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        session = _open(tab, f"?level={_car_right(app, 'car right (race notices)')}")
+        _wait(lambda: session.gallery_id is not None)
+        noop = load_policy("noop", observing_env(session.editor.level_file().size))
+        app.agents.race(session, policy=noop)
+        _wait(lambda: session.mode == "ready")  # "Press Space or an arrow key to start" on the race's banner
+        for title in ("Saved to the gallery", "Something else", "And a third notice"):
+            session.client.add_notification(title, "Share it: /?level=abc " * 4, auto_close_seconds=30.0)
+        _wait(lambda: tab.page.locator(".mantine-Notification-root").count() >= 3)
+        time.sleep(1.0)  # let the notices slide in
+        notices = tab.page.evaluate("""() => [...document.querySelectorAll('.mantine-Notification-root')]
+            .map(e => e.getBoundingClientRect()).filter(r => r.height > 0)
+            .map(r => [r.x, r.y, r.x + r.width, r.y + r.height])""")
+        # Where the notices' stack is cut off, if it is (a stack that scrolls shows nothing below its box).
+        clip = tab.page.evaluate("""() => { const e = document.querySelector('.mantine-Notifications-root');
+            const r = e.getBoundingClientRect();
+            return getComputedStyle(e).overflowY === 'visible' ? 1e9 : r.y + r.height; }""")
+        box = canvas_box(tab.page)
+        view = session._view
+        scale = box["height"] / view.height
+        left, top, right, bottom = race_banner_box(view.width, view.height)
+        banner = [box["x"] + left * scale, box["y"] + top * scale, box["x"] + right * scale, box["y"] + bottom * scale]
+        middle = box["y"] + box["height"] / 2 - 36 * scale  # a one-line banner at mid-height (server.play.draw)
+        assert notices
+        for x0, y0, x1, y1 in notices:
+            visible_bottom = min(y1, clip)
+            assert visible_bottom <= banner[1] or y0 >= banner[3] or x1 <= banner[0] or x0 >= banner[2], \
+                f"a notice covers the race banner: {notices}, banner {banner}"
+            assert visible_bottom <= middle, f"a notice reaches the middle banner: {notices}, cut at {clip}"
     finally:
         tab.close()

@@ -30,7 +30,7 @@ def _wait(predicate, timeout=30.0):
 
 def _solve(app, level_id: str) -> None:
     """A protocol-level tab plays the level to its win, so the gallery keeps the run."""
-    client = ViserTestClient(app.viser.get_port())
+    client = ViserTestClient(app.viser.get_port(), token=app.relay_token)
     try:
         nonce = session_nonce(client)
         keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")

@@ -15,6 +15,7 @@ import pytest
 from kinetix.levels import load_level, to_document
 from server.gallery import runs as runs_module
 from server.gallery.runs import BestRuns
+from server.gallery.schema import recording_files_t
 from server.gallery.store import Store
 from tests.gallery.conftest import level_doc
 
@@ -190,6 +191,11 @@ def test_api_serves_the_best_run_or_a_404_with_a_message(runs, tmp_path, unverif
         summary = client.get(f"/api/levels/{level_id}").json()
         assert summary["stats"]["has_best_run"] is True
         (runs.directory / name).unlink()  # a file lost behind the database's back: 404, not a 500
+        if runs.shared:  # PostgreSQL: the local file is a cache of the shared copy, fetched again
+            assert client.get(f"/api/levels/{level_id}/best-run.mcap").content == response.content
+            with runs.store._write() as conn:
+                conn.execute(recording_files_t.delete())
+            (runs.directory / name).unlink()
         assert client.get(f"/api/levels/{level_id}/best-run.mcap").status_code == 404
         assert "best-run.mcap" in str(client.get("/openapi.json").json()["paths"])
 
@@ -210,3 +216,23 @@ def test_a_level_opened_in_a_tab_plays_bitwise_the_gallerys_stored_level():
         document = to_document(load_level(read_json(path)))  # what the gallery stores and serves
         spec, size = levelio.parse(json.dumps(document).encode(), path.name)  # what Session.open_level plays
         assert _same_level(build(spec, size), load_level(document)), path.name
+
+
+def test_a_best_run_kept_by_one_process_is_served_by_another(pg_schema_url, tmp_path, unverified):
+    """Two processes on one PostgreSQL gallery, each with its own data directory: A keeps the run, B serves it;
+    when A's run is beaten on B, A no longer finds the superseded one."""
+    a_store = Store(pg_schema_url, seed_dir=None, recordings_dir=tmp_path / "a")
+    b_store = Store(pg_schema_url, seed_dir=None, recordings_dir=tmp_path / "b")
+    try:
+        a, b = BestRuns(a_store), BestRuns(b_store)
+        level_id, _ = a_store.create_level("lvl", level_doc())
+        kept = _solve(a, level_id, tmp_path, 100, 3.3)
+        assert not (tmp_path / "b" / kept).exists()
+        assert b.best_run_file(level_id).read_bytes() == b"run 100 3.3", "fetched from the shared table"
+        faster = _solve(b, level_id, tmp_path, 90, 3.0)
+        assert a.best_run_file(level_id).name == faster and a.best_run_file(level_id).read_bytes() == b"run 90 3.0"
+        with a_store._read() as conn:
+            assert [r.name for r in conn.execute(recording_files_t.select())] == [faster], "superseded row gone"
+    finally:
+        a_store.close()
+        b_store.close()

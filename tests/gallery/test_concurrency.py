@@ -51,9 +51,11 @@ def test_sixteen_threads_lose_nothing(store: Store, db_url: str):
                         created.append(level_id)
                 elif action < 0.6 and token:
                     value = rng.choice((-1, 0, 1))
+                    db.record_play(target, "human", solved=False, steps=1, seconds=0.1, author=token)  # may vote
                     db.vote(target, token, value)
                     with lock:
                         votes[(target, token)] = value
+                        plays[(target, "human", False)] += 1
                 else:
                     kind = rng.choice(("human", "agent"))
                     solved = rng.random() < 0.5
@@ -96,7 +98,7 @@ n = 0
 while True:
     level_id, new = store.create_level(f"w{n}", {}, prepared=prepared, token=token)
     token = token or new
-    store.record_play(level_id, "human", solved=True, steps=n, seconds=1.0)
+    store.record_play(level_id, "human", solved=True, steps=n, seconds=1.0, author=token)
     store.vote(level_id, token, 1)
     n += 1
     print(level_id, flush=True)  # after the commits: this level and its play and vote are durable
@@ -157,6 +159,8 @@ def test_http_server_killed_during_writes_keeps_every_answered_write(tmp_path: P
     level_id, _ = store.create_level("target", {}, prepared=fake)
     with store._write() as conn:  # voters: each answered up-vote is one new row (plays cannot be posted)
         voters = [store.new_author(conn)[1] for _ in range(2000)]
+    for token in voters:  # each played it (a vote needs a server-run play of the level by that identity)
+        store.record_play(level_id, "human", solved=False, steps=1, seconds=0.1, author=token)
     store.close()
     port = _free_port()
     server = _start_server(db, port, "--write-limit", "0")  # many writes from one address, on purpose

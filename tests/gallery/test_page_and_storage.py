@@ -94,8 +94,8 @@ def test_seed_once_and_restart_keeps_everything(db_url, tmp_path):
     assert {i["id"] for i in store.list_levels()[0]} == {"car-right", "pinball"}
     store.delete_level("pinball", None, admin=True)
     level_id, token = store.create_level("mine", level_doc(), tags=["x"])
+    store.record_play(level_id, "human", solved=True, steps=5, seconds=1.0, author=token)
     store.vote(level_id, token, 1)
-    store.record_play(level_id, "human", solved=True, steps=5, seconds=1.0)
     before = store.counts()
     store.close()
     again = Store(db_url, seed_dir=seeds)  # a restart: no re-seeding, the deleted seed stays deleted

@@ -54,5 +54,5 @@ def test_gallery_page_renders_payload_as_text(tmp_path: Path):
     assert "<img src=\"x\"" not in dom and "<img src=x" not in dom  # and never as an element
     assert dom.count("<img") == 2  # the card template's and the one card's thumbnail: nothing from the name
     assert "<title>Kinetix gallery</title>" in dom  # the onerror handler did not run
-    assert f'href="/?level={level_id}&amp;mode=play"' in dom and f'href="/?level={level_id}"' in dom
+    assert f'href="./?level={level_id}&amp;mode=play"' in dom and f'href="./?level={level_id}"' in dom  # relative
     assert "#xss" in dom and "Watch agent" in dom

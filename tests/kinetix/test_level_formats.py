@@ -296,14 +296,19 @@ def test_export_collision_matrix_excludes_jointed_bodies(robot):
     assert len(data["env_state"]["acc_cc_manifolds"]) == C * (C - 1) // 2
 
 
-def test_eight_vertex_polygon_exports_to_kinetix_with_eight_vertex_slots():
+def test_eight_vertex_polygon_exports_to_kinetix_as_welded_parts_of_four_vertex_slots():
     sim = empty_level("l").sim
     octagon = [[math.cos(a), math.sin(a)] for a in np.arange(8) * math.pi / 4]
     sim, _ = scene.add_polygon(sim, (2.5, 2.0), np.array(octagon) * 0.3)
     file = load_level(to_document(LevelFile(make_level(sim), size=SIZES["l"])))
     data = to_document(file, "kinetix")
-    assert data["static_env_params"]["max_polygon_vertices"] == 8
-    assert_bitwise_equal(load_level(data).level, file.level)
+    assert data["static_env_params"]["max_polygon_vertices"] == 4
+    back = load_level(data)
+    assert [int(n) for n in back.level.sim.bodies.n_vertices[NUM_WALLS:7]] == [4, 4, 4]
+    joints = back.level.sim.joints
+    assert int(np.sum(np.asarray(joints.active))) == 2 and np.asarray(joints.fixed)[:2].all()
+    # The same level again: a second export splits nothing and round-trips bitwise.
+    assert_bitwise_equal(load_level(to_document(back, "kinetix")).level, back.level)
 
 
 def test_kinetix_export_needs_the_walls_first():

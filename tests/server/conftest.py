@@ -62,7 +62,7 @@ def make_client():
     clients = []
 
     def make(app, width=640, height=480):
-        client = ViserTestClient(app.viser.get_port(), width, height)
+        client = ViserTestClient(app.viser.get_port(), width, height, token=app.relay_token)
         clients.append(client)
         return client
 

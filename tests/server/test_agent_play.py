@@ -287,7 +287,7 @@ def test_the_gallery_cards_watch_agent_link_opens_agent_mode():
     card = (static / "gallery.html").read_text()
     watch = next(line for line in card.splitlines() if "watch" in line)
     assert "<a " in watch and "disabled" not in watch
-    assert '.watch").href = `/?level=${id}&mode=agent`' in (static / "gallery.js").read_text()
+    assert '.watch").href = `./?level=${id}&mode=agent`' in (static / "gallery.js").read_text()  # relative: --root-path
 
 
 def test_training_refuses_bad_step_counts(app, make_client):

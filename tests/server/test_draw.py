@@ -36,6 +36,16 @@ def test_bodies_have_role_colours_and_anti_aliased_edges(level):
     assert len({tuple(p) for p in row}) > 3 and blended
 
 
+def test_the_browser_frame_without_text_is_kinetix_draws_level_frame(level):
+    """kinetix.gym's rgb_array frames come from kinetix.draw.level_frame: the browser's frames less the text."""
+    from kinetix.draw import level_frame
+
+    view = View(320, 240)
+    frame = draw_frame(scene_of(level), view, legend=False)
+    assert np.array_equal(frame, level_frame(level, view))
+    assert not np.array_equal(draw_frame(scene_of(level), view, hud="PLAY"), frame)
+
+
 def test_overlay_hud_and_banner_change_the_frame(level):
     view = View(400, 300)
     base = draw_frame(scene_of(level), view)
@@ -98,3 +108,18 @@ def test_cached_text_has_the_pixels_of_pillows_text():
             got = base.copy()
             _text(got, xy, text, (30, 30, 30), size)
             assert np.array_equal(np.asarray(got), np.asarray(expected)), (text, xy, size)
+
+
+@pytest.mark.parametrize("size", [(640, 480), (300, 300), (1280, 800)])
+def test_an_editor_message_is_boxed_at_the_bottom_clear_of_the_axes_gizmo(level, size):
+    from server.play.draw import MESSAGE_CLEAR, MESSAGE_FILL, message_box
+
+    view = View(*size)
+    text = 'no polygon left: 6 of 6 used in size m; "Move to size l" in the panel makes room'
+    lines, (left, top, right, bottom) = message_box(view, text)
+    assert " ".join(lines) == text
+    assert bottom <= view.height and top >= view.height / 2, "at the bottom of the canvas"
+    if view.width >= 400:  # viser's gizmo sits in the bottom-left corner (about 60 x 60 pixels)
+        assert left >= MESSAGE_CLEAR - 10 and right <= view.width - MESSAGE_CLEAR + 10
+    frame = draw_frame(scene_of(level), view, message=text)
+    assert (frame[top + 2, (left + right) // 2] == MESSAGE_FILL).all(), "on a white box"

@@ -129,3 +129,31 @@ def test_the_gallery_page_and_api_are_served_beside_the_editor(app):
     assert "<template id=\"card\">" in page
     listing = json.loads(urllib.request.urlopen(app.url + "api/levels?limit=1", timeout=10).read())
     assert set(listing) == {"items", "next"}
+
+
+def test_a_tab_keeps_one_identity_for_its_plays_saves_and_votes(app, make_client):
+    """Issue 34: a tab without a token gets one identity at its first gallery play, hands it to the page, and
+    uses it for every later save; that identity may vote on the level it played, a fresh one may not."""
+    level_id, _ = app.store.create_level("falling win", _falling_win_document())
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
+    try:
+        _wait(lambda: session.mode == "ready")
+        assert session.author_token is None
+        keys.down("Space")
+        _wait(lambda: app.store.stats(level_id)["human_plays"] == 1)
+        token = session.author_token
+        assert token
+        _wait(lambda: any(token in html for html in _html(client)))  # the page gets the tab's identity
+        link = GalleryLink(app.store)
+        first, second = link.save(session, "one"), link.save(session, "two")
+        assert session.author_token == token
+        assert app.store.get_level(first)["author"] == app.store.get_level(second)["author"] == \
+            app.store.author_of(token)
+        assert app.store.vote(level_id, token, 1)["up"] == 1
+        fresh, _ = app.store.identity(None)
+        with pytest.raises(Exception, match="only someone who played this level may vote"):
+            app.store.vote(level_id, fresh, 1)
+    finally:
+        keys.close()

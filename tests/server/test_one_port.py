@@ -25,6 +25,26 @@ def test_viser_listens_on_loopback_only(app):
     assert app.viser.get_port() != app.port
 
 
+def test_viser_port_answers_only_the_relay(app):
+    """Nothing reaches viser's internal port without the relay's token: no way around the Host and Origin checks
+    (server/web/relay.py). The relay itself (the other tests) passes."""
+    import urllib.error
+    import urllib.request
+
+    with pytest.raises(websockets.InvalidStatus) as refused:
+        websockets.sync.client.connect(f"ws://127.0.0.1:{app.viser.get_port()}",
+                                       subprotocols=[f"viser-v{viser.__version__}"], open_timeout=10)
+    assert refused.value.response.status_code == 403
+    with pytest.raises(websockets.InvalidStatus):
+        websockets.sync.client.connect(f"ws://127.0.0.1:{app.viser.get_port()}", open_timeout=10,
+                                       subprotocols=[f"viser-v{viser.__version__}"],
+                                       additional_headers={"X-Kinetix-Relay": "guess"})
+    with pytest.raises(urllib.error.HTTPError) as page:  # viser's own copy of the page and its files
+        urllib.request.urlopen(f"http://127.0.0.1:{app.viser.get_port()}/", timeout=10)
+    assert page.value.code == 403
+    assert not app.manager.sessions, "no session was opened by the refused connections"
+
+
 def test_a_tab_through_the_one_port_gets_frames_and_plays(app):
     client = ViserTestClient(app.port)  # the user's port, not viser's
     keys = None

@@ -15,18 +15,25 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
-    # --data keeps the test away from the user's own gallery (~/.local/share/kinetix).
+def _serve(tmp_path, *options: str, until: str) -> tuple[subprocess.Popen, list[str]]:
+    """`kinetix serve` on a free port with its data in tmp_path (away from the user's own gallery), and its output up
+    to the first line that starts with `until`. JAX_PLATFORMS is left for kinetix to choose."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--warm", "none",
-                                "--data", str(tmp_path), "--allowed-hosts", "kinetix.test"],
-                               cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    env.pop("JAX_PLATFORMS", None)
+    process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--data", str(tmp_path),
+                                *options], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
+    lines = []
+    for line in process.stdout:
+        lines.append(line)
+        if line.startswith(until):
+            break
+    return process, lines
+
+
+def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
+    process, lines = _serve(tmp_path, "--warm", "none", "--allowed-hosts", "kinetix.test", until="Open ")
     try:
-        lines = []
-        for line in process.stdout:
-            lines.append(line)
-            if line.startswith("Open "):
-                break
         url = lines[-1].split()[-1]
         assert url.startswith("http://127.0.0.1:") and url.endswith("/"), lines
         assert sum("http" in line for line in lines) == 1  # one URL only (viser's internal one is not shown)
@@ -62,6 +69,18 @@ def test_serve_refuses_a_busy_port(tmp_path):
                                 timeout=60)
     assert result.returncode == 2
     assert f"cannot listen on 127.0.0.1:{port}" in result.stdout
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--trusted-proxies", "proxy.lan", "--trusted-proxies: 'proxy.lan' is not an IP address or network"),
+    ("--root-path", "/a b/", "--root-path: '/a b/' must be a plain path such as /kinetix/"),
+])
+def test_serve_refuses_a_bad_proxy_or_root_path_before_starting(tmp_path, option, value, message):
+    result = subprocess.run([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--warm", "none",
+                             "--data", str(tmp_path), option, value],
+                            cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 2 and f"kinetix serve: {message}" in result.stdout, result.stdout + result.stderr
 
 
 def test_serve_parses_the_training_cap_and_refuses_zero(capsys):
@@ -101,3 +120,22 @@ def test_make_serve_passes_args_to_the_server():
     out = subprocess.run(["make", "-n", "serve", "ARGS=--port 9000 --data /tmp/k"], cwd=ROOT, capture_output=True,
                          text=True, timeout=30, check=True).stdout
     assert ".venv/bin/kinetix serve --port 9000 --data /tmp/k\n" in out, out
+
+
+def test_ctrl_c_during_the_warm_up_exits_at_once_and_jax_tries_no_missing_platform(tmp_path):
+    """A Ctrl+C while the first start compiles (or fills the gallery) closes everything and ends the process without
+    waiting for the compile under way (it took ~10 s); JAX tries only the platforms present, so no start prints
+    "Unable to initialize backend 'tpu'"."""
+    process, lines = _serve(tmp_path, until="Compiling the physics")
+    try:
+        process.send_signal(signal.SIGINT)  # the warm-up has just begun: its first task is under way
+        rest = process.communicate(timeout=60)[0]
+        output = "".join(lines) + rest
+        assert process.returncode == 0, output
+        assert "Shutting down" in rest and "the compile under way is abandoned" in rest, output
+        after = rest.split("Shutting down", 1)[1]
+        assert " done in " not in after, "a warm-up task was waited for after Ctrl+C"
+        assert "Unable to initialize backend" not in output, output
+    finally:
+        if process.poll() is None:
+            process.kill()

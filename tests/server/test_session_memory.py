@@ -37,7 +37,7 @@ def _rss_kb() -> int:
 
 def _cycle(app, n: int) -> None:
     for _ in range(n):
-        client = ViserTestClient(app.viser.get_port(), 320, 240)
+        client = ViserTestClient(app.viser.get_port(), 320, 240, token=app.relay_token)
         client.wait_frame()
         client.close()
     deadline = time.monotonic() + 20

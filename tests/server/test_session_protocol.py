@@ -161,6 +161,7 @@ def test_win_shows_the_result_with_play_again_and_edit(app, make_client):
     assert session._result == "solved" and session._steps > 0
     _wait(lambda: client.find_gui("Play again").get("visible") is True)
     assert client.find_gui("Edit").get("visible") is True
+    _wait(lambda: client.find_gui("Stop (Space)").get("visible") is False)  # nothing left to stop
     client.click_button("Play again")
     _wait(lambda: session.mode == "ready")  # it waits for the player: nothing moves until Space or a key
     assert session._steps == 0

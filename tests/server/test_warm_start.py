@@ -100,3 +100,32 @@ def test_a_cancelled_warm_up_skips_what_it_has_not_started():
     then = []
     warm.start(then=lambda: then.append(1)).join(timeout=10)
     assert ran == [("size", "s")] and warm.finished and then == [1]
+
+
+def test_the_gallery_api_answers_503_until_its_levels_are_seeded_never_an_empty_list(monkeypatch):
+    """A new gallery is seeded by the warm-up after the server answers (issue 34): meanwhile the API says it is
+    preparing (503, Retry-After) instead of listing nothing; afterwards the project's levels are there."""
+    import json
+    import urllib.error
+
+    from server.gallery.store import Store
+
+    gate = threading.Event()
+    real = Store.seed
+
+    def held_seed(self, folder):
+        gate.wait(timeout=120)
+        return real(self, folder)
+
+    monkeypatch.setattr(Store, "seed", held_seed)
+    with running_app(wait_warm=False, warm_sizes=(), gallery=True) as app:
+        try:
+            with pytest.raises(urllib.error.HTTPError) as preparing:
+                urllib.request.urlopen(f"http://127.0.0.1:{app.port}/api/levels", timeout=30)
+            assert preparing.value.code == 503 and preparing.value.headers["Retry-After"] == "2"
+            assert "being prepared" in json.loads(preparing.value.read())["detail"]
+        finally:
+            gate.set()
+        wait_until(lambda: app.warmup.wait(0.1, sizes_only=False), timeout=120)
+        with urllib.request.urlopen(f"http://127.0.0.1:{app.port}/api/levels", timeout=30) as answer:
+            assert json.loads(answer.read())["items"], "the project's levels"

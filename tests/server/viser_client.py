@@ -47,12 +47,17 @@ def _is_frame(message: dict) -> bool:
 class ViserTestClient:
     """Connects, announces a camera of `width` x `height` and records every message the server sends."""
 
-    def __init__(self, port: int, width: int = 640, height: int = 480, host: str = "127.0.0.1"):
+    def __init__(self, port: int, width: int = 640, height: int = 480, host: str = "127.0.0.1",
+                 token: str | None = None, path: str = ""):
+        """`token`: the app's relay_token, for a client that connects to viser's internal port straight
+        (server.web.relay: that port refuses anyone without it); a client of the user's port needs none."""
         self.width, self.height = width, height
         self.messages: list[dict] = []
         self._cond = threading.Condition()
-        self.ws = websockets.sync.client.connect(f"ws://{host}:{port}", subprotocols=[f"viser-v{viser.__version__}"],
-                                                 max_size=None, open_timeout=10)
+        self.ws = websockets.sync.client.connect(f"ws://{host}:{port}{path}",
+                                                 subprotocols=[f"viser-v{viser.__version__}"],
+                                                 max_size=None, open_timeout=10,
+                                                 additional_headers={"X-Kinetix-Relay": token} if token else None)
         self._thread = threading.Thread(target=self._receive, daemon=True)
         self._thread.start()
         self.send_camera(width, height)
@@ -160,11 +165,12 @@ class ViserTestClient:
 class KeysSocket:
     """The /keys websocket as keys.js speaks it: hello with the tab's nonce, then down/up events."""
 
-    def __init__(self, port: int, nonce: str, host: str = "127.0.0.1", query: str = "", token: str | None = None):
+    def __init__(self, port: int, nonce: str, host: str = "127.0.0.1", query: str = "", token: str | None = None,
+                 path: str = ""):
         import json
 
         self._json = json
-        self.ws = websockets.sync.client.connect(f"ws://{host}:{port}/keys", open_timeout=10)
+        self.ws = websockets.sync.client.connect(f"ws://{host}:{port}{path}/keys", open_timeout=10)
         self.ws.send(json.dumps({"type": "hello", "nonce": nonce, "query": query, "token": token}))
         self.reply = json.loads(self.ws.recv(timeout=10))
         self.seq = 0

@@ -88,21 +88,22 @@ def test_import_public_level(shared_dir):
     assert int(ed.level_file().level.sim.bodies.active.sum()) == int(expected.level.sim.bodies.active.sum())
 
 
-def test_polygon_of_five_vertices_exports_to_kinetix_with_a_note(ed):
+def test_polygon_of_five_vertices_exports_to_kinetix_split_with_a_summary(ed):
     ed.set_tool("polygon")
     for p in [(3.0, 3.0), (4.0, 3.0), (4.5, 3.5), (4.0, 4.0), (3.0, 4.0)]:
         ed.click(*p)
     ed.key("Enter")
     data = json.loads(ed.export("kinetix"))
-    assert data["static_env_params"]["max_polygon_vertices"] == 5
-    assert [e["n_vertices"] for e in data["env_state"]["polygon"] if e["active"]][-1] == 5
-    (note,) = ed.export_notes("kinetix")
-    assert "5-vertex polygon" in note and "first 4 vertices" in note
+    assert data["static_env_params"]["max_polygon_vertices"] == 4
+    assert sorted(e["n_vertices"] for e in data["env_state"]["polygon"] if e["active"])[:2] == [3, 4]
+    (summary,) = ed.export_notes("kinetix")
+    assert summary == "split 1 polygon (5 vertices) into 2 parts welded by 1 fixed joint; exported as size l"
     assert ed.export_notes("ours") == []
     other = Editor()
     other.import_bytes(ed.export("kinetix").encode())
     counts = lambda spec: sorted(len(b.vertices or ()) for b in spec.bodies)  # noqa: E731
-    assert counts(other.spec) == counts(ed.spec)
+    assert counts(other.spec) == sorted(counts(ed.spec)[:-1] + [3, 4])  # the pentagon as a triangle and a quad
+    assert len(other.spec.joints) == len(ed.spec.joints) + 1
 
 
 def test_opening_a_level_in_a_fresh_editor_is_its_base_and_undo_keeps_it():

@@ -253,7 +253,7 @@ def test_joint_and_thruster_snap_only_where_it_stays_on_the_bodies(ed):
     assert ed.spec.joints[0].anchor_b == pytest.approx((0.0, 0.0))
     ed.set_tool("thruster")
     # x to the grid (1.0), y aligned with the centres (1.2): the left edge's midpoint, still on the body
-    ed.click(1.18, 1.13)
+    ed.click(1.18, 1.17)  # (within the snap radius, 0.04 m, of the centres' y)
     assert ed.spec.thrusters[0].anchor == pytest.approx((-0.5, 0.0))
     ed.click(1.3, 1.3)  # to the grid point (1.5, 1.5): off the body, so not snapped
     assert ed.spec.thrusters[1].anchor == pytest.approx((-0.2, 0.1))

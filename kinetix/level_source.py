@@ -1,0 +1,116 @@
+"""What a `--level` argument names: one level file, a directory of level files, or random levels of a size class.
+
+    source = level_source("levels/car_right.json")      # or "levels/" or "random-s"
+    env = make_env(source.env_config("entity", "multi_discrete"), source.reset_fn())
+    params = source.params
+
+`kinetix train` and `kinetix.gym` resolve levels here, so both build the same environment from the same words.
+A directory's levels are brought to the largest size class among them (smaller ones are padded) and must share one
+frame skip (it is compile-time); each keeps its own episode length, shaping and actuator scales in `level_params`.
+Random levels are generated every episode (kinetix.generate) with shaping RANDOM_DENSE_REWARD, as the public
+Kinetix environment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from kinetix.env import EnvConfig, EnvParams, ResetFn
+from kinetix.level import WALLS_SOLVER, Level, LevelError, LevelFile, LevelParams, SizeClass, size_class, solver_for
+from kinetix.levels import load_level, resize
+from kinetix.reset_fns import reset_list, reset_random, reset_single, stack_levels
+
+RANDOM_LEVELS = ("random-s", "random-m", "random-l")
+RANDOM_DENSE_REWARD = 0.1  # shaping on generated levels, as the public Kinetix environment
+
+
+def level_paths(spec: str | Path) -> list[Path]:
+    """A level file, or every *.json in a directory (sorted)."""
+    path = Path(spec)
+    if path.is_dir():
+        paths = sorted(path.glob("*.json"))
+        if not paths:
+            raise LevelError(f"no *.json level files in {path}")
+        return paths
+    if not path.is_file():
+        raise LevelError(f"level {path} does not exist")
+    return [path]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LevelSource:
+    """The levels of one `--level` spec and the compile-time settings they need."""
+
+    spec: str
+    size: SizeClass
+    frame_skip: int
+    solver: object  # jax2d SolverConfig: WALLS_SOLVER when every level keeps its walls static
+    params: EnvParams  # the first level's (files) or the random levels' settings
+    generator: Callable[[jax.Array], Level] | None = None  # random levels only
+    files: tuple[LevelFile, ...] = ()  # level files only, each in `size`
+    names: tuple[str, ...] = ()
+    dense_reward: float | None = None  # the shaping scale given to level_source, if any
+
+    @property
+    def random(self) -> bool:
+        return self.generator is not None
+
+    @property
+    def stacked(self) -> Level:
+        """The files' levels stacked on a leading axis (level files only)."""
+        return stack_levels(self.files)
+
+    @property
+    def level_params(self) -> EnvParams:
+        """Every file's EnvParams stacked on a leading axis, in the order of `files` (level files only); a
+        `dense_reward` given to `level_source` applies to all."""
+        each = [EnvParams.from_level_params(lf.params) for lf in self.files]
+        if self.dense_reward is not None:
+            each = [dataclasses.replace(p, dense_reward_scale=self.dense_reward) for p in each]
+        return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *each)
+
+    def env_config(self, observation: str = "entity", action: str = "multi_discrete", **overrides) -> EnvConfig:
+        return EnvConfig(self.size, observation=observation, action=action, frame_skip=self.frame_skip,
+                         solver=self.solver, **overrides)
+
+    def reset_fn(self) -> ResetFn:
+        """Random levels: a new one each episode; one file: always it; several: one drawn uniformly per episode
+        (kinetix.reset_fns.reset_list, whose draw `list_index` repeats)."""
+        if self.random:
+            return reset_random(self.size, self.generator)
+        return reset_single(self.files[0]) if len(self.files) == 1 else reset_list(self.stacked)
+
+
+def level_source(spec: str | Path, dense_reward: float | None = None) -> LevelSource:
+    """The levels `spec` names: a level file, a directory of *.json level files, or random-s / random-m / random-l.
+
+    dense_reward: the shaping scale for every level (default: each level file's own; RANDOM_DENSE_REWARD for random
+    levels). Raises LevelError for a missing, empty or unreadable spec, and for a directory mixing frame skips.
+    """
+    spec = str(spec)
+    if spec in RANDOM_LEVELS:
+        from kinetix.generate import sample_level
+
+        size = size_class(spec[-1])
+        generator = lambda key: sample_level(key, size)
+        # Generated levels are built on empty_level: their walls are static.
+        scale = RANDOM_DENSE_REWARD if dense_reward is None else dense_reward
+        return LevelSource(spec, size, LevelParams().frame_skip, WALLS_SOLVER, EnvParams(dense_reward_scale=scale),
+                           generator=generator, dense_reward=dense_reward)
+    paths = level_paths(spec)
+    files = [load_level(p) for p in paths]
+    skips = {lf.params.frame_skip for lf in files}
+    if len(skips) > 1:
+        raise LevelError(f"the levels in {spec} use different frame skips {sorted(skips)}; use them separately")
+    largest = max((lf.size for lf in files), key=lambda s: (s.polygons + s.circles, s.joints, s.thrusters))
+    files = [lf if lf.size == largest else resize(lf, largest) for lf in files]
+    params = EnvParams.from_level_params(files[0].params)
+    if dense_reward is not None:
+        params = dataclasses.replace(params, dense_reward_scale=dense_reward)
+    return LevelSource(spec, largest, skips.pop(), solver_for([lf.level for lf in files]), params, files=tuple(files),
+                       names=tuple(p.stem for p in paths), dense_reward=dense_reward)

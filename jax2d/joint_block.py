@@ -18,6 +18,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jax2d.math2d import ordered_sum
+
 # Added to the diagonal, relative to it, before the elimination. A is only positive
 # semi-definite: rows that repeat others (a loop of welds, two welds on one pair of bodies) make
 # it singular. The multipliers such rows get along the null space of J^T move no body; this
@@ -102,4 +104,5 @@ def solve(a, rhs: tuple[jax.Array, ...], order, count) -> tuple[jax.Array, ...]:
     a, swept_rows = jax.lax.fori_loop(0, count, joint, (a, jnp.zeros(rows.shape, bool)))
     kept = swept_rows.astype(a.dtype)
     inverse = a * (kept[:, None] * kept[None, :])
-    return tuple(-jnp.sum(inverse * r[None], axis=1) for r in rhs)
+    # in index order (math2d.ordered_sum), so a scene's multipliers do not depend on the batch it is in
+    return tuple(-ordered_sum(inverse * r[None], axis=1) for r in rhs)

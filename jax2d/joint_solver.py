@@ -19,7 +19,20 @@ import jax
 import jax.numpy as jnp
 
 from jax2d import joint_block
-from jax2d.math2d import Pose, Softness, Vel, at, cross, one_hot_rows, pick_rows, rotate, safe_inverse, set_at, stored
+from jax2d.math2d import (
+    Pose,
+    Softness,
+    Vel,
+    at,
+    cross,
+    one_hot_rows,
+    ordered_sum,
+    pick_rows,
+    rotate,
+    safe_inverse,
+    set_at,
+    stored,
+)
 from jax2d.state import J_ANGULAR, J_LINEAR_X, J_LINEAR_Y, J_LOWER, J_MOTOR, J_UPPER, Joints
 
 
@@ -321,6 +334,7 @@ def _spread_rows(jc: JointConstraints, fr: JointFrame, lam) -> tuple[jax.Array, 
     twist_b = jc.ib * (cross(fr.rbx, fr.rby, px, py) + pw)
 
     def spread(on_a, on_b):  # (J, *batch) per joint end -> (M, *batch) per body
-        return jnp.sum(jc.sel_a * on_a[:, None] + jc.sel_b * on_b[:, None], axis=0)
+        # in joint order (math2d.ordered_sum): a body on several joints gets the same bits at every batch width
+        return ordered_sum(jc.sel_a * on_a[:, None] + jc.sel_b * on_b[:, None], axis=0)
 
     return spread(-jc.ma * px, jc.mb * px), spread(-jc.ma * py, jc.mb * py), spread(twist_a, twist_b)

@@ -48,6 +48,24 @@ def pick_rows(sel, x):
     return jnp.sum(sel * x[None], axis=1)
 
 
+def ordered_sum(x, axis: int = 0):
+    """x summed over `axis` in index order, as a chain of elementwise adds: the same bits at every batch width.
+
+    XLA's CPU reduce (jnp.sum) accumulates in an order that depends on the array's whole shape: summing
+    one scene's terms over a joint axis gave results 1 ulp apart when the scene was stepped in a batch of
+    8 or of 16 (issue 33), and a chaotic scene (levels/cartpole.json) grows that to O(1) in 64 steps, so a
+    run split over devices or processes diverged from the same run on one. Elementwise adds have no such
+    freedom. For the short axes of the joint projection (3 x joints at most); an empty axis sums to 0.
+    """
+    x = jnp.moveaxis(x, axis, 0)
+    if x.shape[0] == 0:
+        return jnp.zeros(x.shape[1:], x.dtype)
+    total = x[0]
+    for k in range(1, x.shape[0]):
+        total = total + x[k]
+    return total
+
+
 def one_hot_rows(index, m: int):
     """index (R, *batch) int -> (R, m, *batch) float32 one-hot rows (all zero for an index outside [0, m)).
 

@@ -222,7 +222,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--level", metavar="FILE|DIR|random-s|random-m|random-l",
                         help="a level file, a directory of level files, or random levels of a size class "
                              "(required unless --resume)")
-    parser.add_argument("--steps", type=positive_int, default=None, help="env steps to train (default: 1000000)")
+    parser.add_argument("--steps", type=positive_int, default=None,
+                        help="env steps to train (default: 1000000); with --resume, a new total extends (or "
+                             "shortens) the run, and an annealed learning rate follows the new total's schedule")
     parser.add_argument("--out", metavar="DIR", help="output directory (default: runs/<level>-<time>)")
     parser.add_argument("--curriculum", choices=["dr", "sfl", "plr"],
                         help="for random levels: domain randomisation (default), sampling for learnability, "
@@ -234,6 +236,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--updates-per-call", type=positive_int, default=None,
                         help="updates per jitted chunk between progress reports (default: 4)")
     parser.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: 3e-4)")
+    parser.add_argument("--constant-lr", action="store_const", const=True, default=None,
+                        help="keep the learning rate constant instead of annealing it linearly to 0 over the run "
+                             "(a run extended with --resume --steps then equals one planned that long)")
     parser.add_argument("--network", choices=["entity", "flat", "pixels"], default=None,
                         help="policy network (default: entity, permutation-invariant)")
     parser.add_argument("--width", type=positive_int, default=None, help="network layer width (default: 64)")

@@ -16,6 +16,9 @@ import warnings
 
 import numpy as np
 
+MEET_TIMEOUT_S = 3600.0  # how long processes wait for each other's compile (a cold l-size compile takes minutes)
+_meetings = 0  # barriers passed: each needs a name of its own, the same in every process
+
 
 class MultihostError(ValueError):
     """Bad multi-host settings (a clear message for the command line)."""
@@ -79,6 +82,26 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         return False
     jax.distributed.initialize()
     return jax.process_count() > 1
+
+
+def compile_together(jitted, *args, timeout_s: float = MEET_TIMEOUT_S) -> None:
+    """Compile `jitted` for `args` now (the later call reuses it), then wait until every process has done so.
+
+    A collective gives the processes 30 s to join it (gloo's connect: "Gloo context initialization failed:
+    ... GetKeyValue() timed out ... 29.99999993s"), and a call's compile happens inside the call. Two processes
+    compiling the l-size PPO update (levels/cartpole.json, defaults) on a loaded 2-core machine finished more than
+    30 s apart, and the first update's gradient all-reduce killed the run. The coordination service's barrier
+    waits as long as `timeout_s`. A no-op in a single process."""
+    import jax
+
+    if jax.process_count() == 1:
+        return
+    jitted.lower(*args).compile()
+    from jax._src import distributed  # the runtime's own client (JAX has no public barrier without a collective)
+
+    global _meetings
+    _meetings += 1
+    distributed.global_state.client.wait_at_barrier(f"kinetix-compiled-{_meetings}", int(timeout_s * 1000))
 
 
 def is_main() -> bool:

@@ -193,11 +193,14 @@ def load_latest(out: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray], Pa
     raise CheckpointError(f"no intact training state in {directory}{detail}")
 
 
-def compare_runs(saved: dict, current: dict) -> None:
-    """CheckpointError naming every setting where the saved run differs from the one being started."""
+def compare_runs(saved: dict, current: dict, ignore: tuple[str, ...] = ()) -> None:
+    """CheckpointError naming every setting where the saved run differs from the one being started; settings
+    named in `ignore` (dotted paths, e.g. "train.total_timesteps") may differ."""
     differences = []
 
     def walk(a: Any, b: Any, prefix: str) -> None:
+        if prefix in ignore:
+            return
         if isinstance(a, dict) and isinstance(b, dict):
             for key in sorted(set(a) | set(b)):
                 walk(a.get(key), b.get(key), f"{prefix}.{key}" if prefix else key)

@@ -43,6 +43,10 @@ from kinetix.env import EnvParams, make_env
 from kinetix.level import LevelError
 from kinetix.level_source import RANDOM_LEVELS, level_source
 
+# Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it). Nothing in the
+# compiled update depends on it but an annealed learning rate, which then follows the new total (see train_agent).
+EXTENDABLE = ("train.total_timesteps",)
+
 
 def setup_levels(level: str, curriculum: str | None, observation: str, action: str,
                  curriculum_config: curricula.CurriculumConfig, dense_reward: float | None):
@@ -83,10 +87,14 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     save_state: also write the whole training state to OUT/resume (kinetix.agents.resume) at the end, stopped
     early or not, so the run can be resumed (`kinetix train` always does; off by default for library callers
     such as the server, whose specialists need only the checkpoint). resume: continue the run whose training
-    state is in OUT/resume instead of starting afresh; every setting must equal the saved run's (CheckpointError
-    naming the differences otherwise). checkpoint_every (minutes of wall-clock time) / checkpoint_every_updates:
-    also write everything between chunks at that cadence, so a killed job loses at most that much work. Either
-    of these implies save_state. In a multi-process run only process 0 writes."""
+    state is in OUT/resume instead of starting afresh; every setting but `steps` must equal the saved run's
+    (CheckpointError naming the differences otherwise). A different `steps` re-plans the run (longer or shorter,
+    not shorter than what is done): an annealed learning rate is from then on that of a `steps`-long run at the
+    same update (it jumps where the plan changes; a finished run's 0 becomes lr * (1 - done / steps)), and with a
+    constant one the result equals a run planned that long from the start. checkpoint_every (minutes of
+    wall-clock time) / checkpoint_every_updates: also write everything between chunks at that cadence, so a
+    killed job loses at most that much work. Either of these implies save_state. In a multi-process run only
+    process 0 writes."""
     from kinetix.agents import multihost
     from kinetix.agents import resume as resume_module
 
@@ -114,7 +122,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     run_id = run_identity(level, config, curriculum_name, curriculum_config, seed, init, env, env_params, factory)
     saved = resume_module.load_latest(out) if resume else None
     if saved is not None:
-        resume_module.compare_runs(saved[0]["run"], run_id)
+        resume_module.compare_runs(saved[0]["run"], run_id, ignore=EXTENDABLE)
 
     if not shard and jax.process_count() > 1:
         raise ValueError("--no-shard cannot be used with several processes: each would train the whole batch alone")
@@ -145,13 +153,18 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     runner = jax2d.jit(trainer.init)(jax.random.key(seed))
     history: list[dict] = []
     elapsed_before = 0.0
+    plans = [{"update": 0, "steps": steps}]  # the run's length, and where each --resume --steps changed it
     if saved is not None:
         meta, arrays, _ = saved
-        runner = resume_module.restore(runner, arrays)
         history, elapsed_before = list(meta["history"]), float(meta["elapsed"])
-        if len(history) % config.updates_per_call or len(history) > config.num_chunks * config.updates_per_call:
+        plans = replan(meta, len(history), steps)
+        if len(history) % config.updates_per_call:
             raise CheckpointError(f"the training state in {out} holds {len(history)} updates, not a whole number of "
                                   f"this run's chunks")
+        if len(history) > config.num_chunks * config.updates_per_call:
+            raise CheckpointError(f"the run in {out} has trained {history[-1]['env_steps']:.0f} steps already; "
+                                  f"--steps {steps} would end before that (give at least that many to extend it)")
+        runner = resume_module.restore(runner, arrays)
     start = time.perf_counter()
     arguments = {"level": level if level in RANDOM_LEVELS else str(Path(level).resolve()), "steps": steps,
                  "curriculum": curriculum, "init": init, "seed": seed, "observation": observation, "action": action,
@@ -168,13 +181,13 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                    "curriculum_config": (dataclasses.asdict(curriculum_config) if curriculum_name in ("sfl", "plr")
                                          else None),
                    "size": env.config.size.name, "devices": jax.device_count(), "processes": jax.process_count(),
-                   "resumed_at_update": None if saved is None else len(saved[0]["history"]),
+                   "resumed_at_update": None if saved is None else len(saved[0]["history"]), "plans": plans,
                    "complete": len(history) == config.num_chunks * config.updates_per_call,  # False mid-run
                    "elapsed_seconds": elapsed, "metrics": history}
         if not multihost.is_main():
             return summary
         if save_state:
-            meta = {"run": run_id, "arguments": arguments, "history": history, "elapsed": elapsed}
+            meta = {"run": run_id, "arguments": arguments, "history": history, "elapsed": elapsed, "plans": plans}
             resume_module.save(out, len(history), meta, resume_module.flatten(host))
         params = host.train_state.params if save_state else host
         checkpoint_module.save(out / "checkpoint", params, config, env.config, info)
@@ -188,6 +201,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         return summary
 
     stopped = False
+    if len(history) < config.num_chunks * config.updates_per_call:  # processes compile at different speeds:
+        multihost.compile_together(trainer.run, runner)  # they meet before the update's collectives
     last_save_time, last_save_update = time.perf_counter(), len(history)
     for _ in range(len(history) // config.updates_per_call, config.num_chunks):
         stop = should_stop is not None and should_stop()
@@ -212,6 +227,17 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
             if progress is not None:
                 progress(m)
     return write(stopped=stopped, final=True)
+
+
+def replan(meta: dict, done: int, steps: int) -> list[dict]:
+    """The saved run's plans ({"update", "steps"}: its length from that update on), with `steps` from update
+    `done` on where it differs from the last. States written before plans were recorded had one plan."""
+    plans = list(meta.get("plans") or [{"update": 0, "steps": meta["arguments"]["steps"]}])
+    if plans[-1]["steps"] != steps:
+        if plans[-1]["update"] == done:  # re-planned again before any update ran: the newer plan replaces it
+            plans.pop()
+        plans.append({"update": done, "steps": steps})
+    return plans
 
 
 def checkpoint_due(seconds_since: float, updates_since: int, every_minutes: float | None,
@@ -285,6 +311,8 @@ def settings_from_args(args: argparse.Namespace) -> dict:
         stored = resume_module.load_latest(args.resume)[0]["arguments"]
     saved_config = {k: v for k, v in stored.get("config", {}).items() if k != "total_timesteps"}
     given_config = {k: getattr(args, k) for k in CONFIG_OPTIONS if getattr(args, k) is not None}
+    if getattr(args, "constant_lr", None):
+        given_config["anneal_lr"] = False
     config = TrainConfig(**{**saved_config, **given_config})
 
     def pick(name: str, default=None):

@@ -1,8 +1,11 @@
 """Resumable training: a run split into jobs (a graceful stop, or a kill after periodic checkpoints, with the
-newest state file damaged) ends exactly where the uninterrupted run ends; state files are written atomically and
-a checkpoint of another configuration is refused with a clear error."""
+newest state file damaged) ends exactly where the uninterrupted run ends; a finished run extended with
+`--resume DIR --steps N` (constant learning rate) ends where a run planned for N steps ends; state files are written
+atomically and a checkpoint of another configuration is refused with a clear error."""
 
+import dataclasses
 import json
+import shutil
 import warnings
 from pathlib import Path
 
@@ -13,7 +16,7 @@ from kinetix.agents import resume
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.curricula import NEG, CurriculumConfig
 from kinetix.agents.ppo import TrainConfig
-from kinetix.agents.train import checkpoint_due, train_agent
+from kinetix.agents.train import checkpoint_due, replan, train_agent
 from kinetix.cli import main
 
 # Tiny and short: 4 chunks of 2 updates of 4 envs x 8 steps on random s levels with PLR (its buffer is filled
@@ -32,9 +35,10 @@ def final_state(out: Path) -> tuple[dict, dict]:
     return meta, arrays
 
 
-def assert_same_run(out: Path, reference: Path) -> None:
+def assert_same_run(out: Path, reference: Path, also_differ: tuple[str, ...] = ()) -> None:
     """Every array of the final training state (parameters, Adam moments and count, environments mid-episode,
-    PLR buffer levels and scores, RNG key, update index) and every logged metric equal the reference run's."""
+    PLR buffer levels and scores, RNG key, update index) and every logged metric (but the wall-clock ones and
+    `also_differ`) equal the reference run's."""
     meta, arrays = final_state(out)
     ref_meta, ref_arrays = final_state(reference)
     assert arrays.keys() == ref_arrays.keys()
@@ -43,7 +47,7 @@ def assert_same_run(out: Path, reference: Path) -> None:
     assert len(meta["history"]) == len(ref_meta["history"]) == 8
     for got, want in zip(meta["history"], ref_meta["history"], strict=True):
         for key in want:
-            if key not in TIMING:
+            if key not in TIMING + also_differ:
                 assert got[key] == pytest.approx(want[key], rel=1e-5, abs=1e-7), key
     metrics = json.loads((out / "metrics.json").read_text())["metrics"]
     assert [m["update"] for m in metrics] == list(range(1, 9))  # the learning curve continues, not restarts
@@ -99,10 +103,45 @@ def test_killed_run_resumes_from_last_good_checkpoint(reference, tmp_path):
 
 
 @pytest.mark.slow
+def test_finished_run_extended_with_steps_equals_a_run_planned_that_long(tmp_path):
+    constant = dict(RUN, config=dataclasses.replace(CONFIG, anneal_lr=False))
+    planned = tmp_path / "planned"
+    train_agent("random-s", planned, **constant, save_state=True)
+    extended = tmp_path / "extended"
+    first = train_agent("random-s", extended, **dict(constant, steps=STEPS // 2), save_state=True)
+    assert first["complete"] and len(first["metrics"]) == 4
+    assert main(["train", "--resume", str(extended), "--steps", str(STEPS)]) == 0
+    # total_steps is the plan each update was logged under: 128 for the first job's updates, 256 after
+    assert_same_run(extended, planned, also_differ=("total_steps",))
+    summary = json.loads((extended / "metrics.json").read_text())
+    assert summary["complete"] and summary["resumed_at_update"] == 4 and summary["config"]["total_timesteps"] == STEPS
+    assert summary["plans"] == [{"update": 0, "steps": STEPS // 2}, {"update": 4, "steps": STEPS}]
+
+
+@pytest.mark.slow
+def test_annealed_run_extended_trains_on_and_shortening_below_done_is_refused(reference, tmp_path, capsys):
+    out = tmp_path / "run"
+    shutil.copytree(reference, out)
+    assert main(["train", "--resume", str(out), "--steps", str(STEPS // 2)]) == 2
+    assert f"has trained {STEPS} steps already" in capsys.readouterr().err
+    # the finished run's learning rate had decayed to 0; extended, it follows a 2 x STEPS run's schedule (lr / 2
+    # at the resume) and the parameters move on
+    assert main(["train", "--resume", str(out), "--steps", str(2 * STEPS)]) == 0
+    meta, arrays, _ = resume.load_latest(out)
+    _, before = final_state(reference)
+    assert [m["update"] for m in meta["history"]] == list(range(1, 17))
+    params = [k for k in before if k.startswith(".train_state.params")]
+    assert max(np.abs(arrays[k] - before[k]).max() for k in params) > 1e-4
+    assert meta["plans"] == [{"update": 0, "steps": STEPS}, {"update": 8, "steps": 2 * STEPS}]
+
+
+@pytest.mark.slow
 def test_resume_with_another_configuration_is_refused(reference, tmp_path, capsys):
     assert main(["train", "--resume", str(reference), "--lr", "0.001"]) == 2
     err = capsys.readouterr().err
     assert "different training configuration" in err and "train.lr: 0.0003 in the checkpoint, 0.001 now" in err
+    assert main(["train", "--resume", str(reference), "--constant-lr"]) == 2
+    assert "train.anneal_lr: True in the checkpoint, False now" in capsys.readouterr().err
     with pytest.raises(CheckpointError, match="seed: 3 in the checkpoint, 4 now"):
         train_agent("random-s", reference, **dict(RUN, seed=4), resume=True)
     with pytest.raises(CheckpointError, match="levels: 'random-s"):
@@ -169,3 +208,13 @@ def test_checkpoint_cadence():
     assert not checkpoint_due(10_000.0, 10_000, every_minutes=None, every_updates=None)
     with pytest.raises(ValueError, match="checkpoint-every must be positive"):
         train_agent("random-s", "/nonexistent", checkpoint_every=0)
+
+
+def test_replan_records_where_the_length_changed():
+    old = {"arguments": {"steps": 100}}  # a state written before plans were recorded
+    assert replan(old, 4, 100) == [{"update": 0, "steps": 100}]
+    extended = replan(old, 4, 200)
+    assert extended == [{"update": 0, "steps": 100}, {"update": 4, "steps": 200}]
+    assert replan({"plans": extended}, 8, 200) == extended  # resumed with the same length: nothing new
+    # changed again before any update ran: the newer plan replaces the one that never took effect
+    assert replan({"plans": extended}, 4, 300) == [{"update": 0, "steps": 100}, {"update": 4, "steps": 300}]

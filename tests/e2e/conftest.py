@@ -52,13 +52,23 @@ def watch_context(context) -> None:
     context.on("weberror", _web_error)
 
 
+SHARED_BROWSER = pytest.StashKey[object]()
+
+
 @pytest.fixture(scope="session")
-def browser():
+def browser(request):
+    """One Chromium for the whole run. Other test folders import this fixture (tests/deploy), which makes another
+    session fixture of the same function; Playwright's sync API cannot start twice in one process, so every copy
+    hands out the browser the first one launched (kept in the run's config stash) and only that one closes it."""
     reason = _missing()
     if reason:
         if os.environ.get("CI") == "true":
             pytest.fail(f"CI=true but {reason}")
         pytest.skip(reason)
+    shared = request.config.stash.get(SHARED_BROWSER, None)
+    if shared is not None:
+        yield shared
+        return
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
@@ -71,8 +81,12 @@ def browser():
             return context
 
         browser.new_context = watched_context
-        yield browser
-        browser.close()
+        request.config.stash[SHARED_BROWSER] = browser
+        try:
+            yield browser
+        finally:
+            del request.config.stash[SHARED_BROWSER]
+            browser.close()
 
 
 @pytest.fixture(autouse=True)

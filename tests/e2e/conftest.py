@@ -98,6 +98,15 @@ def page_errors():
     assert not errors, "the browser reported errors:\n" + "\n".join(errors)
 
 
+def expect_page_error(errors: list[str], fragment: str, required: bool = True) -> None:
+    """Take the errors a test provoked on purpose (say a refused request, which Chromium logs to the console) off the
+    list `page_errors` checks; fails if none was reported, unless not `required` (errors that only timing brings,
+    such as reconnect attempts while a server restarts)."""
+    matching = [error for error in errors if fragment in error]
+    assert matching or not required, f"expected a browser error containing {fragment!r}, got {errors}"
+    errors[:] = [error for error in errors if fragment not in error]
+
+
 def wait_js(page, expression: str, timeout: float = 60.0) -> None:
     """Wait until `expression` is truthy in the page. Polls page.evaluate (the DevTools protocol, which the page's
     Content-Security-Policy does not govern): page.wait_for_function evaluates its predicate with eval inside

@@ -8,7 +8,7 @@ import pytest
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab, wait_js
+from tests.e2e.conftest import Tab, expect_page_error, wait_js
 from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
@@ -47,7 +47,7 @@ def _fill(session, field, text: str) -> None:
     raise AssertionError(f"the server never received {text!r} (held: {_server_text_values(session)})")
 
 
-def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
+def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app, page_errors):
     tab = Tab(browser, app, 1280, 800)
     try:
         page, session = tab.page, tab.session
@@ -120,6 +120,7 @@ def test_save_from_the_editor_see_the_card_open_it_and_play(browser, app):
             _wait(lambda: "only someone who played this level may vote" in page.locator("#status").inner_text())
             assert app.store.stats(level_id)["votes_up"] == 1 and app.store.counts()["authors"] == authors
             assert visitor.cookies() == [] and page.evaluate("localStorage.getItem('kinetix.author_token')") is None
+            expect_page_error(page_errors, "/vote: Failed to load resource: the server responded with a status of 403")
         finally:
             visitor.close()
         tab.assert_local_only()

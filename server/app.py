@@ -102,6 +102,7 @@ class App:
         import uvicorn
         import viser
 
+        from server.gallery.models import problem_handlers
         from server.play.manager import SessionManager
         from server.play.memory import keep_frame_buffers_resident
         from server.play.warmup import WarmUp
@@ -160,6 +161,7 @@ class App:
         if self.recorder is None:
             self._start_recordings()
         app = create_app(self.manager, self.viser.get_port(), gallery_router=router,
+                         gallery_handlers=problem_handlers if router is not None else None,
                          allowed_hosts=allowed_hosts_for(self.config.host, self.config.allowed_hosts),
                          trusted_proxies=TrustedProxies.parse(self.config.trusted_proxies),
                          root_path=self.config.root_path, relay_token=self.relay_token)

@@ -20,6 +20,7 @@ import asyncio
 import json
 import logging
 import weakref
+from collections.abc import Callable
 from pathlib import Path
 
 from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
@@ -61,7 +62,8 @@ def inject(page: str) -> str:
 
 
 def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
-               gallery_router: APIRouter | None = None, allowed_hosts=LOCAL_HOSTS,
+               gallery_router: APIRouter | None = None,
+               gallery_handlers: Callable[[FastAPI], None] | None = None, allowed_hosts=LOCAL_HOSTS,
                trusted_proxies: TrustedProxies | None = None, root_path: str = "",
                relay_token: str | None = None) -> FastAPI:
     """The side server's app. `manager` is a server.play.session.SessionManager (it maps nonces to sessions).
@@ -94,10 +96,9 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
         return FileResponse(static_dir / "gallery.html")
 
     if gallery_router is not None:
-        from server.gallery.models import problem_handlers
-
         app.include_router(gallery_router, prefix="/api")
-        problem_handlers(app)  # 422s as {"detail": "..."}, the API's one error shape
+        if gallery_handlers is not None:  # the gallery's own error shape (server.gallery.models.problem_handlers):
+            gallery_handlers(app)  # passed in, so server.web never imports server.gallery
 
     opened: weakref.WeakSet = weakref.WeakSet()  # sessions whose page query was handled (the first hello)
 

@@ -128,8 +128,11 @@ class GalleryLink:
         token, new = self.store.identity(session.author_token)
         if new:
             session.author_token = token
+            client = session.client
+            if client is None:  # the tab closed meanwhile (a play recorded after the disconnect): nobody to tell
+                return token
             # keys.js copies it into localStorage, where the gallery page finds it too.
-            session.client.gui.add_html(f'<div id="kinetix-token" data-token="{html.escape(token)}" hidden></div>')
+            client.gui.add_html(f'<div id="kinetix-token" data-token="{html.escape(token)}" hidden></div>')
         return token
 
     def open(self, session, level_id: str) -> None:

@@ -157,3 +157,22 @@ def test_a_tab_keeps_one_identity_for_its_plays_saves_and_votes(app, make_client
             app.store.vote(level_id, fresh, 1)
     finally:
         keys.close()
+
+
+def test_a_play_cut_short_by_closing_the_tab_is_recorded_without_an_error(app, make_client):
+    """A tab closed mid-play ends the play after its client is gone: the play still counts (under a new identity,
+    since the tab had none) and handing that identity to a page that no longer exists is skipped, not a crash."""
+    level_id, _ = app.store.create_level("falling win", _falling_win_document())
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
+    try:
+        _wait(lambda: session.mode == "ready")
+        assert session.author_token is None
+        session.close()
+        assert session.client is None
+        GalleryLink(app.store).record_play(session, "stopped", 3, 0.1)
+        assert app.store.stats(level_id)["human_plays"] >= 1
+        assert session.author_token  # the identity the play was recorded under
+    finally:
+        keys.close()

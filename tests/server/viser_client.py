@@ -125,11 +125,19 @@ class ViserTestClient:
                     elements.pop(m["uuid"], None)
         return elements
 
-    def find_gui(self, label: str) -> dict:
-        for element in self.gui().values():
-            if element.get("label") == label:
-                return element
-        raise KeyError(f"no GUI element labelled {label!r}; have {[e.get('label') for e in self.gui().values()]}")
+    def find_gui(self, label: str, timeout: float = 10.0) -> dict:
+        """The GUI element with this label, waiting for it: a session's panels are built after it is registered,
+        so a test that found the session may look before they arrive."""
+        deadline = time.monotonic() + timeout
+        while True:
+            for element in self.gui().values():
+                if element.get("label") == label:
+                    return element
+            if time.monotonic() >= deadline:
+                labels = [e.get("label") for e in self.gui().values()]
+                raise KeyError(f"no GUI element labelled {label!r}; have {labels}")
+            with self._cond:
+                self._cond.wait(0.05)
 
     def html_containing(self, text: str) -> str:
         for element in self.gui().values():

@@ -219,7 +219,7 @@ def _bench_record_arguments(parser: argparse.ArgumentParser) -> None:
 def _train_arguments(parser: argparse.ArgumentParser) -> None:
     # Settings that define the run default to None here: `--resume DIR` fills the ones not given from the saved
     # run (and refuses ones that differ); kinetix.agents.train.run applies the defaults named in the help.
-    parser.add_argument("--level", metavar="FILE|DIR|random-s|random-m|random-l",
+    parser.add_argument("--level", metavar="FILE|DIR|random-s|random-m|random-l|random-all",
                         help="a level file, a directory of level files, or random levels of a size class "
                              "(required unless --resume)")
     parser.add_argument("--steps", type=positive_int, default=None,
@@ -229,6 +229,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--curriculum", choices=["dr", "sfl", "plr"],
                         help="for random levels: domain randomisation (default), sampling for learnability, "
                              "prioritized level replay")
+    parser.add_argument("--sfl-refresh-every", type=positive_int, default=None, metavar="UPDATES",
+                        help="sfl: score fresh levels and refill the buffer every UPDATES updates (default: 50, sized "
+                             "for 32-64 envs; with 512 envs 10 refreshes as often per env step)")
     parser.add_argument("--init", metavar="general|DIR", help="fine-tune this agent instead of starting from scratch")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
     parser.add_argument("--num-envs", type=positive_int, default=None, help="parallel environments (default: 32)")

@@ -4,6 +4,7 @@
     env = make_env(source.env_config("entity", "multi_discrete"), source.reset_fn())
     params = source.params
 
+`random-all` draws each level's size class (s, m or l, uniformly), generates it there and pads it to l.
 `kinetix train` and `kinetix.gym` resolve levels here, so both build the same environment from the same words.
 A directory's levels are brought to the largest size class among them (smaller ones are padded) and must share one
 frame skip (it is compile-time); each keeps its own episode length, shaping and actuator scales in `level_params`.
@@ -25,7 +26,10 @@ from kinetix.level import WALLS_SOLVER, Level, LevelError, LevelFile, LevelParam
 from kinetix.levels import load_level, resize
 from kinetix.reset_fns import reset_list, reset_random, reset_single, stack_levels
 
-RANDOM_LEVELS = ("random-s", "random-m", "random-l")
+RANDOM_LEVELS = ("random-s", "random-m", "random-l", "random-all")
+# random-all: each level's size class drawn uniformly from these, generated there and padded to the last
+# (kinetix.padding), so one compiled program trains on all three.
+MIXED_SIZES = ("s", "m", "l")
 RANDOM_DENSE_REWARD = 0.1  # shaping on generated levels, as the public Kinetix environment
 
 
@@ -87,7 +91,8 @@ class LevelSource:
 
 
 def level_source(spec: str | Path, dense_reward: float | None = None) -> LevelSource:
-    """The levels `spec` names: a level file, a directory of *.json level files, or random-s / random-m / random-l.
+    """The levels `spec` names: a level file, a directory of *.json level files, or random-s / random-m / random-l /
+    random-all (s, m and l levels, each padded to l).
 
     dense_reward: the shaping scale for every level (default: each level file's own; RANDOM_DENSE_REWARD for random
     levels). Raises LevelError for a missing, empty or unreadable spec, and for a directory mixing frame skips.
@@ -96,8 +101,11 @@ def level_source(spec: str | Path, dense_reward: float | None = None) -> LevelSo
     if spec in RANDOM_LEVELS:
         from kinetix.generate import sample_level
 
-        size = size_class(spec[-1])
-        generator = lambda key: sample_level(key, size)
+        if spec == "random-all":
+            size, generator = size_class(MIXED_SIZES[-1]), mixed_generator(MIXED_SIZES)
+        else:
+            size = size_class(spec.removeprefix("random-"))
+            generator = lambda key: sample_level(key, size)
         # Generated levels are built on empty_level: their walls are static.
         scale = RANDOM_DENSE_REWARD if dense_reward is None else dense_reward
         return LevelSource(spec, size, LevelParams().frame_skip, WALLS_SOLVER, EnvParams(dense_reward_scale=scale),
@@ -114,3 +122,21 @@ def level_source(spec: str | Path, dense_reward: float | None = None) -> LevelSo
         params = dataclasses.replace(params, dense_reward_scale=dense_reward)
     return LevelSource(spec, largest, skips.pop(), solver_for([lf.level for lf in files]), params, files=tuple(files),
                        names=tuple(p.stem for p in paths), dense_reward=dense_reward)
+
+
+def mixed_generator(sizes: tuple[str, ...]) -> Callable[[jax.Array], Level]:
+    """A generator of levels whose size class is drawn uniformly from `sizes`, padded to the last (the largest).
+    Under vmap every class's level is generated and one is kept per row (a select): generation runs once per
+    episode, so the 3x is small beside the physics of the episode."""
+    from kinetix.generate import sample_level
+    from kinetix.padding import pad_level
+
+    classes = [size_class(s) for s in sizes]
+
+    def generator(key: jax.Array) -> Level:
+        k_size, k_level = jax.random.split(key)
+        which = jax.random.randint(k_size, (), 0, len(classes))
+        levels = [pad_level(sample_level(k_level, c), classes[-1]) for c in classes]
+        return jax.tree.map(lambda *xs: jnp.select([which == i for i in range(len(xs))], xs), *levels)
+
+    return generator

@@ -52,7 +52,7 @@ def setup_levels(level: str, curriculum: str | None, observation: str, action: s
                  curriculum_config: curricula.CurriculumConfig, dense_reward: float | None):
     """(env, env_params, curriculum factory taking a solve_rate_fn, description) for a --level spec."""
     if level not in RANDOM_LEVELS and curriculum is not None:
-        raise ValueError(f"--curriculum {curriculum} needs random levels (--level random-s|random-m|random-l); "
+        raise ValueError(f"--curriculum {curriculum} needs random levels (--level {'|'.join(RANDOM_LEVELS)}); "
                          f"a level file or directory is trained on as given")
     source = level_source(level, dense_reward)
     config = source.env_config(observation, action)
@@ -326,8 +326,11 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 "init": pick("init"), "seed": pick("seed", 0), "config": config,
                 "observation": pick("observation", config.network), "action": stored.get("action", "multi_discrete"),
                 "dense_reward": pick("dense_reward"), "resume": bool(args.resume)}
-    if "curriculum_config" in stored:
-        settings["curriculum_config"] = curricula.CurriculumConfig(**stored["curriculum_config"])
+    curriculum_config = dict(stored.get("curriculum_config") or {})
+    if getattr(args, "sfl_refresh_every", None) is not None:
+        curriculum_config["refresh_every"] = args.sfl_refresh_every
+    if curriculum_config:
+        settings["curriculum_config"] = curricula.CurriculumConfig(**curriculum_config)
     return settings
 
 

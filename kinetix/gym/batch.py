@@ -235,7 +235,7 @@ def open_batch(level, num_envs: int, observation: str = "entity", action: str = 
                pixel_resolution: int = 64, max_timesteps: int | None = None,
                dense_reward: float | None = None) -> Batch:
     """A Batch of the levels `level` names: a level file, a directory of level files, or random-s / random-m /
-    random-l (kinetix.level_source, as `kinetix train --level`)."""
+    random-l / random-all (kinetix.level_source, as `kinetix train --level`)."""
     from kinetix.level_source import RANDOM_LEVELS, level_source
 
     if level is None:

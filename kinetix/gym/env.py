@@ -26,7 +26,8 @@ class KinetixGymEnv(gymnasium.Env):
     """A Kinetix level (or levels) as a Gymnasium environment.
 
     level: a level file (either format), a directory of *.json level files (one drawn per episode), or random-s /
-    random-m / random-l (a generated level per episode). observation: "entity" (a Dict), "flat" or "pixels";
+    random-m / random-l / random-all (a generated level per episode; random-all: s, m or l, padded to l).
+    observation: "entity" (a Dict), "flat" or "pixels";
     action: "multi_discrete", "discrete" or "continuous". max_timesteps / dense_reward: override the level's
     episode length and shaping scale. render_mode "rgb_array": render() returns a (render_size, render_size, 3)
     uint8 frame drawn like the browser's.

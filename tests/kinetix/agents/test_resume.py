@@ -218,3 +218,37 @@ def test_replan_records_where_the_length_changed():
     assert replan({"plans": extended}, 8, 200) == extended  # resumed with the same length: nothing new
     # changed again before any update ran: the newer plan replaces the one that never took effect
     assert replan({"plans": extended}, 4, 300) == [{"update": 0, "steps": 100}, {"update": 4, "steps": 300}]
+
+
+
+def test_sfl_refresh_from_the_command_line_is_part_of_the_run(monkeypatch):
+    """`--sfl-refresh-every N` sets the run's curriculum config; a resumed job (which names nothing but the
+    directory) keeps the saved value, and one given again is kept for train_agent to compare."""
+    import argparse
+
+    from kinetix.agents.train import settings_from_args
+    from kinetix.cli import _train_arguments
+
+    parser = argparse.ArgumentParser()
+    _train_arguments(parser)
+    fresh = settings_from_args(parser.parse_args(["--level", "random-all", "--curriculum", "sfl",
+                                                  "--sfl-refresh-every", "2"]))
+    assert fresh["level"] == "random-all" and fresh["curriculum_config"].refresh_every == 2
+    saved = {"level": "random-all", "curriculum": "sfl", "config": {},
+             "curriculum_config": dataclasses.asdict(CurriculumConfig(refresh_every=2))}
+    monkeypatch.setattr(resume, "load_latest", lambda out: ({"arguments": saved}, {}, Path(out)))
+    resumed = settings_from_args(parser.parse_args(["--resume", "somewhere"]))
+    assert resumed["curriculum_config"].refresh_every == 2 and resumed["curriculum"] == "sfl"
+    changed = settings_from_args(parser.parse_args(["--resume", "somewhere", "--sfl-refresh-every", "3"]))
+    assert changed["curriculum_config"].refresh_every == 3  # train_agent refuses it: it differs from the run
+
+
+@pytest.mark.slow
+def test_sfl_trains_on_random_all_levels(tmp_path):
+    config = dataclasses.replace(CONFIG, width=8, hidden=16)
+    curriculum = CurriculumConfig(buffer_size=4, candidates=4, attempts=1, refresh_every=2)
+    summary = train_agent("random-all", tmp_path, steps=4 * 8 * 2, config=config, curriculum="sfl",
+                          curriculum_config=curriculum, save_state=True)
+    assert summary["complete"] and len(summary["metrics"]) == 2
+    meta, _, _ = resume.load_latest(tmp_path)
+    assert meta["arguments"]["level"] == "random-all"

@@ -155,39 +155,22 @@ class TrainingPool:
     def _check_limits(self, client: str) -> None:
         """Refuse a new run of `client` that could not start now and has no room to wait (lock held)."""
         running = sum(1 for job in self._running if job.client == client)
-        if running < self.per_client and len(self._running) < self.max_running:
-            return  # it starts at once
         waiting = sum(1 for job in self._queued if job.client == client)
-        if waiting >= self.per_client_waiting:
-            mine = running + waiting
-            raise TrainingRefused(
-                f"you already have {mine} training run{'s' if mine != 1 else ''} going or waiting (at most "
-                f"{self.per_client} running and {self.per_client_waiting} waiting per person): cancel one or "
-                "wait for it to finish")
-        if len(self._queued) >= self.max_queued:
-            raise TrainingRefused(
-                f"the training queue is full ({len(self._queued)} runs waiting for {self.max_running} "
-                f"worker{'s' if self.max_running != 1 else ''}): try again when a run has finished")
+        check_limits(running, waiting, len(self._running), len(self._queued), workers=self.max_running,
+                     per_client=self.per_client, per_client_waiting=self.per_client_waiting,
+                     max_queued=self.max_queued)
 
     def _pick(self, queued: list[TrainingJob], served: dict[str, int],
               running: list[TrainingJob] | None = None) -> TrainingJob | None:
-        """The next queued job to start: round-robin across clients (the one served longest ago, or never, first;
-        then the oldest job). With `running`, a client already at its per-client cap is skipped."""
-        busy = collections.Counter(job.client for job in running or ())
-        ready = [job for job in queued if busy[job.client] < self.per_client]
-        return min(ready, key=lambda job: (served.get(job.client, 0), job.id), default=None)
+        return pick_next(queued, served, self.per_client, running)
 
     def _projected(self) -> list[TrainingJob]:
         """The queued jobs in the order they would start if every run started at once (lock held)."""
-        served, rest, order = dict(self._served), list(self._queued), []
-        start = max(served.values(), default=0)
-        while rest:
-            job = self._pick(rest, served)
-            rest.remove(job)
-            order.append(job)
-            start += 1
-            served[job.client] = start
-        return order
+        return projected_order(self._queued, self._served, self.per_client)
+
+    def workers(self) -> int:
+        """How many runs may run at once (the tab says so while a run waits)."""
+        return self.max_running
 
     def position(self, job: TrainingJob) -> int:
         """0 while running (or finished), else the job's expected place in the queue (1 = next to start)."""
@@ -335,3 +318,47 @@ class TrainingPool:
             log.exception("training completion callback failed")
         finally:
             job.settled.set()
+
+
+# ---------------------------------------------------------------- the rules, shared with the database queue
+# (server.agents.queue): the same limits, messages and turn order whether the queue is this process's or shared.
+
+def check_limits(running: int, waiting: int, all_running: int, all_waiting: int, *, workers: int, per_client: int,
+                 per_client_waiting: int, max_queued: int) -> None:
+    """Refuse (TrainingRefused, a message for the user) a new run of a client that runs `running` and has `waiting`
+    waiting, when `all_running` of `workers` run and `all_waiting` wait: unless it could start at once, it needs
+    room among its own waiting runs and in the queue."""
+    if running < per_client and all_running < workers:
+        return  # it starts at once
+    if waiting >= per_client_waiting:
+        mine = running + waiting
+        raise TrainingRefused(
+            f"you already have {mine} training run{'s' if mine != 1 else ''} going or waiting (at most "
+            f"{per_client} running and {per_client_waiting} waiting per person): cancel one or "
+            "wait for it to finish")
+    if all_waiting >= max_queued:
+        raise TrainingRefused(
+            f"the training queue is full ({all_waiting} runs waiting for {workers} "
+            f"worker{'s' if workers != 1 else ''}): try again when a run has finished")
+
+
+def pick_next(queued: list, served: dict[str, int], per_client: int, running: list | None = None):
+    """The next queued job (anything with `.client` and `.id`) to start: round-robin across clients (the one served
+    longest ago, or never, first; then the oldest job). With `running`, a client already at its per-client cap is
+    skipped."""
+    busy = collections.Counter(job.client for job in running or ())
+    ready = [job for job in queued if busy[job.client] < per_client]
+    return min(ready, key=lambda job: (served.get(job.client, 0), job.id), default=None)
+
+
+def projected_order(queued: list, served: dict[str, int], per_client: int) -> list:
+    """The queued jobs in the order they would start if every run started at once."""
+    served, rest, order = dict(served), list(queued), []
+    start = max(served.values(), default=0)
+    while rest:
+        job = pick_next(rest, served, per_client)
+        rest.remove(job)
+        order.append(job)
+        start += 1
+        served[job.client] = start
+    return order

@@ -277,6 +277,8 @@ class App:
                                 train_steps=self.config.train_steps, train_options=self.config.train_options,
                                 recorder=self.recorder if self.config.record else None)
         self.agents.attach(self.manager)
+        if self.agents.level_agents is not None and self.agents.level_agents.remove_orphans():
+            log.info("removed stored checkpoints of deleted levels' specialists")
 
     def _attach_drafts(self) -> None:
         """Drafts and the address bar (last, so `?draft=` is looked at before the gallery's and agents' links)."""

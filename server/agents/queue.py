@@ -12,7 +12,7 @@ worker takes the next job, and the per-person limits and the queue cap count acr
 A row holds what a job is (level document, settings, who asked: `client` for the limits and `owner`, the process
 whose tab asked and shows it), its state (queued, running, done, failed, cancelled), its progress (the worker's
 progress dicts as JSON, `progress_n` of them), its result (summary, error, and the trained checkpoint as a blob,
-server.agents.packing) and who runs it (`worker`, `heartbeat`).
+server.gallery.checkpoints) and who runs it (`worker`, `heartbeat`).
 
 Atomic claims: every write that decides who runs what (submit, claim) runs under one lock, PostgreSQL's
 transaction-level advisory lock QUEUE_LOCK (SQLite's BEGIN IMMEDIATE locks the whole database already), and the

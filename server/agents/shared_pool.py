@@ -14,7 +14,7 @@ Each process plays two parts, through one background thread (`_loop`, every POLL
 - **Worker**: while fewer than `max_running` of its runs go, it claims the next job in turn (at submit, when one of
   its runs ends, and on every loop), trains it in a spawned worker process exactly as TrainingPool does (same worker
   function, in `work_dir/job-<id>`), writes progress to the row after every batch of updates, stops a run flagged
-  for cancelling, and stores the packed checkpoint (server.agents.packing, ~0.5 MB) with the result.
+  for cancelling, and stores the packed checkpoint (server.gallery.checkpoints, ~0.5 MB) with the result.
 
 Heartbeats and the sweep of dead processes' jobs: every HEARTBEAT_S (server.agents.queue). A clean shutdown
 (`close`) cancels the jobs this process asked for (their tabs close with it) and gives the jobs it ran for other
@@ -37,7 +37,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from server.agents.packing import CheckpointError, pack_checkpoint, unpack_checkpoint
 from server.agents.queue import HEARTBEAT_S, LEASE_S, Limits, TrainingQueue
 from server.agents.training import (
     DEFAULT_MAX_QUEUED,
@@ -48,6 +47,7 @@ from server.agents.training import (
     TrainingJob,
     train_worker,
 )
+from server.gallery.checkpoints import CheckpointError, pack_checkpoint, unpack_checkpoint
 
 log = logging.getLogger(__name__)
 

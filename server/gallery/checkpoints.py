@@ -1,5 +1,6 @@
 """A checkpoint directory as one value for the database, and back: how a trained specialist travels between server
-processes (server.agents.queue: a run's result; server.gallery.agents: a gallery level's specialists).
+processes (server.agents.queue: a run's result; server.gallery.agents: a gallery level's specialists). It lives with
+the gallery's storage, which must not import server.agents (tests/server/test_layout.py).
 
     data = pack_checkpoint(run_dir / "checkpoint")         # bytes: a plain tar of its files (~0.5 MB)
     unpack_checkpoint(data, other_run_dir / "checkpoint")  # written whole or not at all

@@ -219,7 +219,8 @@ class SharedTrainingPool:
                             run.stop.set()
                 if now - claimed >= CLAIM_EVERY_S and len(running) < self.max_running:
                     claimed = now
-                    self._fill()
+                    if self.queue.has_queued():  # a plain read first: the claim takes the queue's lock
+                        self._fill()
             except Exception:  # a lost database connection must not end the loop: the next round tries again
                 log.exception("training queue loop failed; trying again")
 

@@ -77,10 +77,13 @@ def test_two_processes_never_claim_the_same_job(two):
     submitted = {queues[i % 2].submit(client=f"client-{i}", owner="ab"[i % 2], steps=100, level_json="{}",
                                       options={}, limits=ROOMY) for i in range(24)}
     claimed: dict[str, list[int]] = {}
+    start = threading.Barrier(4)
 
     def claim_all(queue, worker):
+        start.wait(timeout=60)  # all at once
         while (row := queue.claim(worker, per_client=1)) is not None:
             claimed.setdefault(worker, []).append(int(row.id))
+            time.sleep(0.005)  # a worker starting its run: the others claim meanwhile
 
     threads = [threading.Thread(target=claim_all, args=(queues[i % 2], f"worker-{i}")) for i in range(4)]
     for thread in threads:

@@ -170,9 +170,16 @@ class SharedTrainingPool:
             self._closed = True
             mine = list(self._mine.values())
             runs = list(self._runs.values())
-        self.queue.leave(self.id)
+        try:
+            self.queue.leave(self.id)
+        except Exception:  # the database is gone: the jobs end here all the same (their rows age out)
+            log.exception("could not leave the training queue")
         for job in mine:
-            self.cancel(job)
+            try:
+                self.cancel(job)
+            except Exception:
+                log.exception("could not cancel training job %d", job.id)
+                self._end(job, "cancelled")
         for run in runs:
             if run.owner != self.id:
                 run.leaving.set()
@@ -184,7 +191,11 @@ class SharedTrainingPool:
         while self._runs and time.monotonic() < deadline:
             time.sleep(0.05)
         for job in mine:  # the runs this process ran ended above; those elsewhere end when their worker sees it
-            self._watch_until(job, deadline)
+            try:
+                self._watch_until(job, deadline)
+            except Exception:
+                log.exception("could not follow training job %d to its end", job.id)
+                self._end(job, "cancelled")
         self._wake.set()
         self._thread.join(timeout=10)
 

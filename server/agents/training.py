@@ -5,6 +5,11 @@
     pool.position(job)      # 0 while running, 1.. while queued
     pool.cancel(job)
 
+This pool is one process's own queue (the default: one `kinetix serve` with SQLite). Several processes on one
+PostgreSQL gallery share one queue instead: server.agents.shared_pool.SharedTrainingPool has this interface over the
+database's table (server.agents.queue), with the same limits, messages and turns (`check_limits`, `pick_next` and
+`projected_order` below serve both).
+
 Why processes: a training run keeps a core busy for minutes and holds the interpreter lock in its Python
 parts; in a thread it would starve the play loop. "spawn" (not fork) because JAX must not be forked once it has
 initialised (the server has). Workers run niced, so play stays responsive on a small machine.

@@ -323,6 +323,10 @@ class SharedTrainingPool:
         with self._lock:
             self._runs[run.job_id] = run
             mirror = self._mine.get(run.job_id)
+            closing = self._closed
+        if closing:  # claimed while close() began: back to the queue (a job of this process's is cancelled there)
+            self._finished(run, "requeue")
+            return
         if mirror is not None:  # this process asked for it: the tab sees it start at once
             mirror.state = "running"
             run.work_dir = mirror.out_dir  # train straight into the asker's run folder (no copy of the result)
@@ -332,10 +336,11 @@ class SharedTrainingPool:
             level_path = run.work_dir / "level.json"
             if mirror is None or not level_path.is_file():
                 level_path.write_text(row.level_json, encoding="utf-8")
-            run.process = self._mp.Process(target=self.worker, name=f"kinetix-train-{run.job_id}", daemon=True,
-                                           args=(str(level_path), str(run.work_dir), int(row.steps), messages,
-                                                 json.loads(row.options)))
-            run.process.start()
+            process = self._mp.Process(target=self.worker, name=f"kinetix-train-{run.job_id}", daemon=True,
+                                       args=(str(level_path), str(run.work_dir), int(row.steps), messages,
+                                             json.loads(row.options)))
+            process.start()
+            run.process = process  # only once started: close() joins it
         except Exception as error:
             log.exception("could not start a training worker")
             self._finished(run, "failed", error=f"could not start the worker: {error}")

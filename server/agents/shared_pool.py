@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import multiprocessing
 import os
 import queue as queue_module
 import secrets
@@ -38,15 +37,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from server.agents.queue import HEARTBEAT_S, LEASE_S, Limits, TrainingQueue
-from server.agents.training import (
-    DEFAULT_MAX_QUEUED,
-    DEFAULT_PER_CLIENT,
-    DEFAULT_PER_CLIENT_WAITING,
-    POLL_S,
-    SETTLE_S,
-    TrainingJob,
-    train_worker,
-)
+from server.agents.training import POLL_S, SETTLE_S, PoolSettings, TrainingJob, end_worker, train_worker
 from server.gallery.checkpoints import CheckpointError, pack_checkpoint, unpack_checkpoint
 
 log = logging.getLogger(__name__)
@@ -68,27 +59,17 @@ class _Run:
     leaving: threading.Event = dataclasses.field(default_factory=threading.Event)  # shutdown: give it back
 
 
-class SharedTrainingPool:
+class SharedTrainingPool(PoolSettings):
+    least_running = 0  # 0: this process asks but trains nothing (another process's workers do)
+
     def __init__(self, store, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn", *,
-                 work_dir: str | os.PathLike, max_queued: int = DEFAULT_MAX_QUEUED,
-                 per_client: int = DEFAULT_PER_CLIENT, per_client_waiting: int = DEFAULT_PER_CLIENT_WAITING,
-                 lease_s: float = LEASE_S, heartbeat_s: float = HEARTBEAT_S, process_id: str | None = None):
-        if max_running < 0:  # 0: this process asks but trains nothing (another process's workers do)
-            raise ValueError(f"training runs at once cannot be negative, got {max_running}")
-        if per_client < 1:
-            raise ValueError(f"at least one training run per client must be allowed, got {per_client}")
-        if max_queued < 0 or per_client_waiting < 0:
-            raise ValueError(f"queue limits cannot be negative, got {max_queued} and {per_client_waiting}")
-        self.max_running = max_running
-        self.max_queued = max_queued
-        self.per_client = per_client
-        self.per_client_waiting = per_client_waiting
-        self.worker = worker
+                 work_dir: str | os.PathLike, lease_s: float = LEASE_S, heartbeat_s: float = HEARTBEAT_S,
+                 process_id: str | None = None, **limits):
+        super().__init__(max_running, worker, context, **limits)
         self.work_dir = Path(work_dir)
         self.heartbeat_s = heartbeat_s
         self.queue = TrainingQueue(store, lease_s=lease_s)
         self.id = process_id or f"{socket.gethostname()[:32]}-{os.getpid()}-{secrets.token_hex(4)}"
-        self._mp = multiprocessing.get_context(context)
         self._lock = threading.Lock()
         # One claim at a time in this process (slots are counted here); re-entrant: a worker that fails to start
         # frees its slot and claims the next job from inside the claim.
@@ -265,7 +246,7 @@ class SharedTrainingPool:
                 if job.state == "running":  # given back by a worker that shut down: waiting again
                     job.state, job.progress, changed = "queued", [], True
             if changed:
-                _notify(job)
+                job.notify()
             if row.state in ("done", "failed", "cancelled"):
                 job.result = json.loads(row.result) if row.result else None
                 job.error = row.error
@@ -296,13 +277,7 @@ class SharedTrainingPool:
         job.state = state
         if state == "cancelled":
             shutil.rmtree(job.out_dir, ignore_errors=True)  # a cancelled run keeps nothing
-        try:
-            if job.on_done is not None:
-                job.on_done(job)
-        except Exception:
-            log.exception("training completion callback failed")
-        finally:
-            job.settled.set()
+        job.settle()
 
     # ------------------------------------------------------------------ working
 
@@ -347,7 +322,7 @@ class SharedTrainingPool:
             return
         if mirror is not None:
             mirror.process = run.process
-            _notify(mirror)
+            mirror.notify()
         threading.Thread(target=self._supervise, args=(run, messages), name=f"kinetix-train-{run.job_id}",
                          daemon=True).start()
 
@@ -382,12 +357,7 @@ class SharedTrainingPool:
             elif kind == "error":
                 error = body
                 break
-        if run.stop.is_set() and process.is_alive():
-            process.terminate()
-        process.join(timeout=30)
-        if process.is_alive():
-            process.kill()
-            process.join(timeout=5)
+        end_worker(process, terminate=run.stop.is_set())
         if progress:
             self._report(run, progress)
         if run.leaving.is_set():
@@ -429,10 +399,3 @@ class SharedTrainingPool:
         if not self._closed:
             self._fill()
 
-
-def _notify(job: TrainingJob) -> None:
-    if job.on_update is not None:
-        try:
-            job.on_update(job)
-        except Exception:
-            log.exception("training progress callback failed")

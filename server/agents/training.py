@@ -104,6 +104,24 @@ class TrainingJob:
     def finished(self) -> bool:
         return self.state in ("done", "failed", "cancelled")
 
+    def notify(self) -> None:
+        """Tell the caller of a change (on_update); its errors are logged, never raised into the pool."""
+        if self.on_update is not None:
+            try:
+                self.on_update(self)
+            except Exception:
+                log.exception("training progress callback failed")
+
+    def settle(self) -> None:
+        """The job ended (its state set): on_done, then `settled`."""
+        try:
+            if self.on_done is not None:
+                self.on_done(self)
+        except Exception:
+            log.exception("training completion callback failed")
+        finally:
+            self.settled.set()
+
     @property
     def fraction(self) -> float:
         """How far the run is, 0..1 (env steps over planned steps)."""
@@ -115,12 +133,18 @@ class TrainingJob:
         return min(1.0, float(last["env_steps"]) / max(float(last.get("total_steps") or self.steps), 1.0))
 
 
-class TrainingPool:
+class PoolSettings:
+    """What both pools (this one and server.agents.shared_pool's) are given: workers at once, the worker function,
+    the queue's limits; checked once here."""
+
+    least_running = 1  # the fewest workers a pool may have
+
     def __init__(self, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn", *,
                  max_queued: int = DEFAULT_MAX_QUEUED, per_client: int = DEFAULT_PER_CLIENT,
                  per_client_waiting: int = DEFAULT_PER_CLIENT_WAITING):
-        if max_running < 1:
-            raise ValueError(f"at least one training run must be allowed, got {max_running}")
+        if max_running < self.least_running:
+            raise ValueError(f"at least one training run must be allowed, got {max_running}" if self.least_running
+                             else f"training runs at once cannot be negative, got {max_running}")
         if per_client < 1:
             raise ValueError(f"at least one training run per client must be allowed, got {per_client}")
         if max_queued < 0 or per_client_waiting < 0:
@@ -131,6 +155,11 @@ class TrainingPool:
         self.per_client_waiting = per_client_waiting
         self.worker = worker
         self._mp = multiprocessing.get_context(context)
+
+
+class TrainingPool(PoolSettings):
+    def __init__(self, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn", **limits):
+        super().__init__(max_running, worker, context, **limits)
         self._lock = threading.Lock()
         self._queued: list[TrainingJob] = []
         self._running: list[TrainingJob] = []
@@ -288,12 +317,7 @@ class TrainingPool:
             elif kind == "error":
                 job.error = body
                 break
-        if job._cancel.is_set() and process.is_alive():  # cancelled before its process existed to terminate
-            process.terminate()
-        process.join(timeout=30)
-        if process.is_alive():
-            process.kill()
-            process.join(timeout=5)
+        end_worker(process, terminate=job._cancel.is_set())  # cancelled, maybe before its process existed to terminate
         if job._cancel.is_set():
             job.state = "cancelled"
             shutil.rmtree(job.out_dir, ignore_errors=True)  # a cancelled run keeps nothing
@@ -309,24 +333,24 @@ class TrainingPool:
         self._start_next()
 
     def _notify(self, job: TrainingJob) -> None:
-        if job.on_update is not None:
-            try:
-                job.on_update(job)
-            except Exception:
-                log.exception("training progress callback failed")
+        job.notify()
 
     def _finish(self, job: TrainingJob) -> None:
-        try:
-            if job.on_done is not None:
-                job.on_done(job)
-        except Exception:
-            log.exception("training completion callback failed")
-        finally:
-            job.settled.set()
+        job.settle()
 
 
 # ---------------------------------------------------------------- the rules, shared with the database queue
 # (server.agents.queue): the same limits, messages and turn order whether the queue is this process's or shared.
+
+def end_worker(process, *, terminate: bool) -> None:
+    """Reap a worker process, terminated first when `terminate`: it gets 30 s to exit, then SIGKILL."""
+    if terminate and process.is_alive():
+        process.terminate()
+    process.join(timeout=30)
+    if process.is_alive():
+        process.kill()
+        process.join(timeout=5)
+
 
 def check_limits(running: int, waiting: int, all_running: int, all_waiting: int, *, workers: int, per_client: int,
                  per_client_waiting: int, max_queued: int) -> None:

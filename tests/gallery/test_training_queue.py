@@ -20,28 +20,11 @@ import pytest
 from server.agents.queue import DEAD_OWNER, Limits, TrainingQueue
 from server.agents.shared_pool import SharedTrainingPool
 from server.agents.training import TrainingRefused
-from server.gallery.store import Store
+from tests.server.conftest import wait_until
 from tests.server.fake_training import fake_train_worker
 
 ROOT = Path(__file__).resolve().parents[2]
 ROOMY = Limits(max_queued=100, per_client=1, per_client_waiting=100)
-
-
-def _wait(predicate, timeout=60.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError("condition not reached")
-        time.sleep(0.02)
-
-
-@pytest.fixture
-def two(db_url: str):
-    """Two stores on one database: what two server processes see."""
-    first, second = Store(db_url, seed_dir=None), Store(db_url, seed_dir=None)
-    yield first, second
-    first.close()
-    second.close()
 
 
 @pytest.fixture
@@ -130,7 +113,7 @@ def test_limits_count_across_processes(two, pools, tmp_path):
     assert a.workers() == b.workers() == 2
     assert [a.position(c1), b.position(a2)] == [1, 2], "carol (never served) goes before alice's second run"
     a.cancel(a1)  # A's worker frees: carol's run (asked on A) starts there, alice's waits on
-    _wait(lambda: c1.state == "running")
+    wait_until(lambda: c1.state == "running")
     assert a1.settled.wait(30) and a1.state == "cancelled" and not a1.process.is_alive()
     assert a2.state == "queued" and b.position(a2) == 1
 
@@ -139,13 +122,13 @@ def test_a_job_asked_on_a_runs_on_b_reports_to_a_and_is_cancelled_from_a(two, po
     a = pools(two[0], "a", max_running=0)  # A trains nothing: B's worker must take A's jobs
     b = pools(two[1], "b")
     job, updates = _submit(a, tmp_path, "cancelled")
-    _wait(lambda: len(job.progress) == 3, 60)  # B runs it; its progress reaches A's job
+    wait_until(lambda: len(job.progress) == 3, 60)  # B runs it; its progress reaches A's job
     assert job.state == "running" and job.process is None, "the worker is not A's"
     assert list((tmp_path / "b" / ".work").glob("job-*/started")), "the run started in B's work folder"
     assert ("running", 3) in updates and 0.7 < job.fraction < 0.8
     a.cancel(job)
     assert job.settled.wait(30) and job.state == "cancelled"
-    _wait(lambda: not list((tmp_path / "b" / ".work").glob("job-*")), 30)  # B terminated it and kept nothing
+    wait_until(lambda: not list((tmp_path / "b" / ".work").glob("job-*")), 30)  # B terminated it and kept nothing
     assert not (tmp_path / "runs" / "cancelled").exists()
 
     (tmp_path / "release-done").touch()
@@ -154,7 +137,7 @@ def test_a_job_asked_on_a_runs_on_b_reports_to_a_and_is_cancelled_from_a(two, po
     assert done.result["solve_rate"] == 0.75 and len(done.progress) == 3
     assert (tmp_path / "runs" / "done" / "checkpoint" / "config.json").read_text() == '{"fake": true}', \
         "the checkpoint trained on B is in A's run folder"
-    _wait(lambda: not list((tmp_path / "b" / ".work").glob("job-*")), 30)
+    wait_until(lambda: not list((tmp_path / "b" / ".work").glob("job-*")), 30)
     assert a.jobs() == [] and b.jobs() == []
 
 
@@ -162,9 +145,9 @@ def test_a_clean_shutdown_gives_the_jobs_it_ran_for_others_back_to_the_queue(two
     a = pools(two[0], "a", max_running=0)
     b = pools(two[1], "b")
     job, _ = _submit(a, tmp_path, "given-back")
-    _wait(lambda: len(job.progress) == 3, 60)
+    wait_until(lambda: len(job.progress) == 3, 60)
     b.close()
-    _wait(lambda: job.state == "queued" and job.progress == [], 30)  # waiting again, from the start
+    wait_until(lambda: job.state == "queued" and job.progress == [], 30)  # waiting again, from the start
     (tmp_path / "release-given-back").touch()
     c = pools(two[1], "c")  # another process takes it up
     assert job.settled.wait(60) and job.state == "done"
@@ -209,7 +192,7 @@ def test_a_job_whose_worker_process_is_killed_fails_with_a_clear_message(db_url,
     try:
         assert doomed.stdout.readline().strip() == "ready"
         job, _ = _submit(a, tmp_path, "orphaned")
-        _wait(lambda: len(job.progress) == 3, 60)  # the other process runs it
+        wait_until(lambda: len(job.progress) == 3, 60)  # the other process runs it
         os.killpg(doomed.pid, signal.SIGKILL)  # the process and its worker, as a crashed host
         doomed.wait(timeout=30)
         assert job.settled.wait(30), "the lease ran out and A's sweep ended the job"

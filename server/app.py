@@ -82,8 +82,9 @@ class App:
 
     @property
     def shared(self) -> bool:
-        """Whether the gallery is a database several processes share (PostgreSQL): then drafts, best runs and rate
-        limits live there too (docs/deploy.md); with SQLite they stay in this process and its data directory."""
+        """Whether the gallery is a database several processes share (PostgreSQL): then drafts, best runs, rate
+        limits and the training queue live there too (docs/deploy.md); with SQLite they stay in this process and its
+        data directory."""
         return self.store is not None and self.store.dialect != "sqlite"
 
     @property
@@ -260,17 +261,24 @@ class App:
         """The Agent folder in every tab (after the gallery's hooks, so `?level=..&mode=agent` opens first)."""
         if not self.config.agents:
             return
+        from server.agents.shared_pool import SharedTrainingPool
         from server.agents.tab import AgentLink
         from server.agents.training import TrainingPool, train_worker
 
-        self.training = TrainingPool(self.config.max_training_runs, worker=self.config.train_worker or train_worker,
-                                     max_queued=self.config.max_training_queue,
-                                     per_client=self.config.max_training_per_client)
         data_dir = Path(self.config.data) if self.config.data else default_data_dir()
+        limits = {"worker": self.config.train_worker or train_worker, "max_queued": self.config.max_training_queue,
+                  "per_client": self.config.max_training_per_client}
+        # Several processes on one PostgreSQL gallery share one queue: any process's worker takes the next run, the
+        # limits count over all of them (server.agents.shared_pool); one process queues in memory, as ever.
+        self.training = SharedTrainingPool(self.store, self.config.max_training_runs,
+                                           work_dir=data_dir / "agents" / ".work", **limits) if self.shared else \
+            TrainingPool(self.config.max_training_runs, **limits)
         self.agents = AgentLink(store=self.store, agents_dir=data_dir / "agents", pool=self.training,
                                 train_steps=self.config.train_steps, train_options=self.config.train_options,
                                 recorder=self.recorder if self.config.record else None)
         self.agents.attach(self.manager)
+        if self.agents.level_agents is not None and self.agents.level_agents.remove_orphans():
+            log.info("removed stored checkpoints of deleted levels' specialists")
 
     def _attach_drafts(self) -> None:
         """Drafts and the address bar (last, so `?draft=` is looked at before the gallery's and agents' links)."""

@@ -5,6 +5,11 @@
     pool.position(job)      # 0 while running, 1.. while queued
     pool.cancel(job)
 
+This pool is one process's own queue (the default: one `kinetix serve` with SQLite). Several processes on one
+PostgreSQL gallery share one queue instead: server.agents.shared_pool.SharedTrainingPool has this interface over the
+database's table (server.agents.queue), with the same limits, messages and turns (`check_limits`, `pick_next` and
+`projected_order` below serve both).
+
 Why processes: a training run keeps a core busy for minutes and holds the interpreter lock in its Python
 parts; in a thread it would starve the play loop. "spawn" (not fork) because JAX must not be forked once it has
 initialised (the server has). Workers run niced, so play stays responsive on a small machine.
@@ -99,6 +104,24 @@ class TrainingJob:
     def finished(self) -> bool:
         return self.state in ("done", "failed", "cancelled")
 
+    def notify(self) -> None:
+        """Tell the caller of a change (on_update); its errors are logged, never raised into the pool."""
+        if self.on_update is not None:
+            try:
+                self.on_update(self)
+            except Exception:
+                log.exception("training progress callback failed")
+
+    def settle(self) -> None:
+        """The job ended (its state set): on_done, then `settled`."""
+        try:
+            if self.on_done is not None:
+                self.on_done(self)
+        except Exception:
+            log.exception("training completion callback failed")
+        finally:
+            self.settled.set()
+
     @property
     def fraction(self) -> float:
         """How far the run is, 0..1 (env steps over planned steps)."""
@@ -110,12 +133,18 @@ class TrainingJob:
         return min(1.0, float(last["env_steps"]) / max(float(last.get("total_steps") or self.steps), 1.0))
 
 
-class TrainingPool:
+class PoolSettings:
+    """What both pools (this one and server.agents.shared_pool's) are given: workers at once, the worker function,
+    the queue's limits; checked once here."""
+
+    least_running = 1  # the fewest workers a pool may have
+
     def __init__(self, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn", *,
                  max_queued: int = DEFAULT_MAX_QUEUED, per_client: int = DEFAULT_PER_CLIENT,
                  per_client_waiting: int = DEFAULT_PER_CLIENT_WAITING):
-        if max_running < 1:
-            raise ValueError(f"at least one training run must be allowed, got {max_running}")
+        if max_running < self.least_running:
+            raise ValueError(f"at least one training run must be allowed, got {max_running}" if self.least_running
+                             else f"training runs at once cannot be negative, got {max_running}")
         if per_client < 1:
             raise ValueError(f"at least one training run per client must be allowed, got {per_client}")
         if max_queued < 0 or per_client_waiting < 0:
@@ -126,6 +155,11 @@ class TrainingPool:
         self.per_client_waiting = per_client_waiting
         self.worker = worker
         self._mp = multiprocessing.get_context(context)
+
+
+class TrainingPool(PoolSettings):
+    def __init__(self, max_running: int = 1, worker: Callable = train_worker, context: str = "spawn", **limits):
+        super().__init__(max_running, worker, context, **limits)
         self._lock = threading.Lock()
         self._queued: list[TrainingJob] = []
         self._running: list[TrainingJob] = []
@@ -155,39 +189,22 @@ class TrainingPool:
     def _check_limits(self, client: str) -> None:
         """Refuse a new run of `client` that could not start now and has no room to wait (lock held)."""
         running = sum(1 for job in self._running if job.client == client)
-        if running < self.per_client and len(self._running) < self.max_running:
-            return  # it starts at once
         waiting = sum(1 for job in self._queued if job.client == client)
-        if waiting >= self.per_client_waiting:
-            mine = running + waiting
-            raise TrainingRefused(
-                f"you already have {mine} training run{'s' if mine != 1 else ''} going or waiting (at most "
-                f"{self.per_client} running and {self.per_client_waiting} waiting per person): cancel one or "
-                "wait for it to finish")
-        if len(self._queued) >= self.max_queued:
-            raise TrainingRefused(
-                f"the training queue is full ({len(self._queued)} runs waiting for {self.max_running} "
-                f"worker{'s' if self.max_running != 1 else ''}): try again when a run has finished")
+        check_limits(running, waiting, len(self._running), len(self._queued), workers=self.max_running,
+                     per_client=self.per_client, per_client_waiting=self.per_client_waiting,
+                     max_queued=self.max_queued)
 
     def _pick(self, queued: list[TrainingJob], served: dict[str, int],
               running: list[TrainingJob] | None = None) -> TrainingJob | None:
-        """The next queued job to start: round-robin across clients (the one served longest ago, or never, first;
-        then the oldest job). With `running`, a client already at its per-client cap is skipped."""
-        busy = collections.Counter(job.client for job in running or ())
-        ready = [job for job in queued if busy[job.client] < self.per_client]
-        return min(ready, key=lambda job: (served.get(job.client, 0), job.id), default=None)
+        return pick_next(queued, served, self.per_client, running)
 
     def _projected(self) -> list[TrainingJob]:
         """The queued jobs in the order they would start if every run started at once (lock held)."""
-        served, rest, order = dict(self._served), list(self._queued), []
-        start = max(served.values(), default=0)
-        while rest:
-            job = self._pick(rest, served)
-            rest.remove(job)
-            order.append(job)
-            start += 1
-            served[job.client] = start
-        return order
+        return projected_order(self._queued, self._served, self.per_client)
+
+    def workers(self) -> int:
+        """How many runs may run at once (the tab says so while a run waits)."""
+        return self.max_running
 
     def position(self, job: TrainingJob) -> int:
         """0 while running (or finished), else the job's expected place in the queue (1 = next to start)."""
@@ -300,12 +317,7 @@ class TrainingPool:
             elif kind == "error":
                 job.error = body
                 break
-        if job._cancel.is_set() and process.is_alive():  # cancelled before its process existed to terminate
-            process.terminate()
-        process.join(timeout=30)
-        if process.is_alive():
-            process.kill()
-            process.join(timeout=5)
+        end_worker(process, terminate=job._cancel.is_set())  # cancelled, maybe before its process existed to terminate
         if job._cancel.is_set():
             job.state = "cancelled"
             shutil.rmtree(job.out_dir, ignore_errors=True)  # a cancelled run keeps nothing
@@ -321,17 +333,61 @@ class TrainingPool:
         self._start_next()
 
     def _notify(self, job: TrainingJob) -> None:
-        if job.on_update is not None:
-            try:
-                job.on_update(job)
-            except Exception:
-                log.exception("training progress callback failed")
+        job.notify()
 
     def _finish(self, job: TrainingJob) -> None:
-        try:
-            if job.on_done is not None:
-                job.on_done(job)
-        except Exception:
-            log.exception("training completion callback failed")
-        finally:
-            job.settled.set()
+        job.settle()
+
+
+# ---------------------------------------------------------------- the rules, shared with the database queue
+# (server.agents.queue): the same limits, messages and turn order whether the queue is this process's or shared.
+
+def end_worker(process, *, terminate: bool) -> None:
+    """Reap a worker process, terminated first when `terminate`: it gets 30 s to exit, then SIGKILL."""
+    if terminate and process.is_alive():
+        process.terminate()
+    process.join(timeout=30)
+    if process.is_alive():
+        process.kill()
+        process.join(timeout=5)
+
+
+def check_limits(running: int, waiting: int, all_running: int, all_waiting: int, *, workers: int, per_client: int,
+                 per_client_waiting: int, max_queued: int) -> None:
+    """Refuse (TrainingRefused, a message for the user) a new run of a client that runs `running` and has `waiting`
+    waiting, when `all_running` of `workers` run and `all_waiting` wait: unless it could start at once, it needs
+    room among its own waiting runs and in the queue."""
+    if running < per_client and all_running < workers:
+        return  # it starts at once
+    if waiting >= per_client_waiting:
+        mine = running + waiting
+        raise TrainingRefused(
+            f"you already have {mine} training run{'s' if mine != 1 else ''} going or waiting (at most "
+            f"{per_client} running and {per_client_waiting} waiting per person): cancel one or "
+            "wait for it to finish")
+    if all_waiting >= max_queued:
+        raise TrainingRefused(
+            f"the training queue is full ({all_waiting} runs waiting for {workers} "
+            f"worker{'s' if workers != 1 else ''}): try again when a run has finished")
+
+
+def pick_next(queued: list, served: dict[str, int], per_client: int, running: list | None = None):
+    """The next queued job (anything with `.client` and `.id`) to start: round-robin across clients (the one served
+    longest ago, or never, first; then the oldest job). With `running`, a client already at its per-client cap is
+    skipped."""
+    busy = collections.Counter(job.client for job in running or ())
+    ready = [job for job in queued if busy[job.client] < per_client]
+    return min(ready, key=lambda job: (served.get(job.client, 0), job.id), default=None)
+
+
+def projected_order(queued: list, served: dict[str, int], per_client: int) -> list:
+    """The queued jobs in the order they would start if every run started at once."""
+    served, rest, order = dict(served), list(queued), []
+    start = max(served.values(), default=0)
+    while rest:
+        job = pick_next(rest, served, per_client)
+        rest.remove(job)
+        order.append(job)
+        start += 1
+        served[job.client] = start
+    return order

@@ -133,9 +133,10 @@ class TabTraining:
         if job.state == "queued" and self.pool is not None:
             position = self.pool.position(job)
             pool = self.pool
+            workers = pool.workers()  # this process's, or with a shared queue every process's
             why = (f"it waits for your other run (at most {pool.per_client} at a time per person)"
                    if pool.waits_for_own_run(job) else
-                   f"at most {pool.max_running} run{'s' if pool.max_running > 1 else ''} at a time; "
+                   f"at most {workers} run{'s' if workers != 1 else ''} at a time; "
                    "the queue takes turns between people")
             self._say(session, f"Training queued: position **{position}** ({why}).{where}")
         elif job.state == "running":

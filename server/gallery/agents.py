@@ -12,20 +12,28 @@ directory holds a checkpoint, so a row never points at a half-written run.
 Only the level's author attaches (a decision of issue 26): `attach` needs the author token that owns the level
 (or `admin=True`, for server-side tools), checked in the same transaction as the insert. Everyone who opens the
 level sees its specialists, so anyone else's agent must not land there; it stays with its tab (server.agents.tab).
+
+Several processes on one PostgreSQL gallery (docs/deploy.md): attaching also stores the packed checkpoint
+(server.gallery.checkpoints, ~0.5 MB) in table `agent_checkpoints` in the same transaction, and `list` fetches a
+specialist whose folder this process lacks into its own agents dir first, so every process offers every specialist
+(as best runs are fetched, server.gallery.runs). With SQLite the folder is the only copy, as before.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from pathlib import Path
 
-from sqlalchemy import BigInteger, Column, Float, Integer, MetaData, String, Table, select
+from sqlalchemy import BigInteger, Column, Float, Integer, MetaData, String, Table, delete, select
 
+from server.gallery.checkpoints import CheckpointError, pack_checkpoint, unpack_checkpoint
 from server.gallery.checks import Forbidden, Invalid, NotFound, Unauthorized, check_id
-from server.gallery.schema import now_ms
+from server.gallery.schema import agent_checkpoints_t, now_ms
 from server.gallery.store import Store
 
+log = logging.getLogger(__name__)
 CHECKPOINT_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 MAX_AGENT_NAME = 64
 
@@ -40,6 +48,7 @@ class LevelAgents:
     def __init__(self, store: Store, agents_dir: str | os.PathLike):
         self.store = store
         self.agents_dir = Path(agents_dir)
+        self.shared = store.dialect != "sqlite"  # several processes: the checkpoints live in agent_checkpoints too
 
     def run_dir(self, name: str) -> Path:
         """The directory of a training run named `name` inside the agents dir (its checkpoint is `/checkpoint`)."""
@@ -58,8 +67,12 @@ class LevelAgents:
         if not (checkpoint / "config.json").is_file():
             raise Invalid(f"agent run {run_name!r} has no checkpoint")
         label = (name or f"specialist {run_name}")[:MAX_AGENT_NAME]
+        packed = pack_checkpoint(checkpoint) if self.shared else None
         with self.store._write() as conn:
             self._check_author(conn, level_id, token, admin)
+            if packed is not None and conn.execute(select(agent_checkpoints_t.c.name).where(
+                    agent_checkpoints_t.c.name == run_name)).first() is None:
+                conn.execute(agent_checkpoints_t.insert().values(name=run_name, data=packed, created=now_ms()))
             result = conn.execute(level_agents_t.insert().values(
                 level_id=level_id, name=label, checkpoint=run_name, steps=int(steps),
                 solve_rate=None if solve_rate is None else float(solve_rate),
@@ -98,7 +111,31 @@ class LevelAgents:
             if not CHECKPOINT_NAME_RE.match(row.checkpoint) or ".." in row.checkpoint:
                 continue  # never follow a stored name that could leave the agents dir
             path = self.agents_dir / row.checkpoint / "checkpoint"
-            if path.is_dir():
+            if path.is_dir() or (self.shared and self._fetch(row.checkpoint, path)):
                 out.append({"id": int(row.id), "name": row.name, "path": path, "steps": int(row.steps),
                             "solve_rate": row.solve_rate, "mean_return": row.mean_return, "created": row.created})
         return out
+
+    def _fetch(self, run_name: str, path: Path) -> bool:
+        """Copy a specialist attached by another process into this one's agents dir; False if it is not stored."""
+        with self.store._read() as conn:
+            data = conn.execute(select(agent_checkpoints_t.c.data)
+                                .where(agent_checkpoints_t.c.name == run_name)).scalar()
+        if data is None:
+            return False
+        try:
+            unpack_checkpoint(data, path)
+        except (CheckpointError, OSError) as error:
+            if path.is_dir():  # another thread of this process fetched it meanwhile
+                return True
+            log.warning("specialist %s not fetched: %s", run_name, error)
+            return False
+        return True
+
+    def remove_orphans(self) -> int:
+        """Delete stored checkpoints that no specialist names any more (their level was deleted); start-up."""
+        if not self.shared:
+            return 0
+        with self.store._write() as conn:
+            return conn.execute(delete(agent_checkpoints_t).where(
+                agent_checkpoints_t.c.name.not_in(select(level_agents_t.c.checkpoint)))).rowcount

@@ -92,6 +92,37 @@ MIGRATIONS: list[tuple[int, str, list[str]]] = [
         "ALTER TABLE plays ADD COLUMN author_id VARCHAR(16) REFERENCES authors(id)",
         "CREATE INDEX plays_level_author ON plays (level_id, author_id)",
     ]),
+    (6, "the browser's training queue shared by server processes, and specialists' checkpoints", [
+        """CREATE TABLE training_jobs (
+            id {serial_pk},
+            client VARCHAR(80) NOT NULL,
+            owner VARCHAR(64) NOT NULL,
+            worker VARCHAR(64),
+            state VARCHAR(12) NOT NULL,
+            steps INTEGER NOT NULL,
+            level_json TEXT NOT NULL,
+            options TEXT NOT NULL,
+            progress TEXT NOT NULL,
+            progress_n INTEGER NOT NULL,
+            result TEXT,
+            error TEXT,
+            checkpoint {blob},
+            cancel BOOLEAN NOT NULL,
+            created BIGINT NOT NULL,
+            started BIGINT,
+            heartbeat BIGINT,
+            finished BIGINT)""",
+        "CREATE INDEX training_jobs_state ON training_jobs (state, id)",
+        "CREATE INDEX training_jobs_client ON training_jobs (client, started)",
+        """CREATE TABLE training_workers (
+            id VARCHAR(64) PRIMARY KEY,
+            slots INTEGER NOT NULL,
+            heartbeat BIGINT NOT NULL)""",
+        """CREATE TABLE agent_checkpoints (
+            name VARCHAR(255) PRIMARY KEY,
+            data {blob} NOT NULL,
+            created BIGINT NOT NULL)""",
+    ]),
 ]
 
 LATEST = MIGRATIONS[-1][0]

@@ -51,6 +51,19 @@ rate_buckets_t = Table("rate_buckets", _meta, Column("kind", String(16), primary
                        Column("client", String(64), primary_key=True), Column("tokens", Float),
                        Column("stamp", Float))
 
+# The browser's training queue (migration 6; server.agents.queue) and the specialists' checkpoints shared by processes.
+training_jobs_t = Table(
+    "training_jobs", _meta, Column("id", BigInteger, primary_key=True), Column("client", String(80)),
+    Column("owner", String(64)), Column("worker", String(64)), Column("state", String(12)), Column("steps", Integer),
+    Column("level_json", Text), Column("options", Text), Column("progress", Text), Column("progress_n", Integer),
+    Column("result", Text), Column("error", Text), Column("checkpoint", LargeBinary), Column("cancel", Boolean),
+    Column("created", BigInteger), Column("started", BigInteger), Column("heartbeat", BigInteger),
+    Column("finished", BigInteger))
+training_workers_t = Table("training_workers", _meta, Column("id", String(64), primary_key=True),
+                           Column("slots", Integer), Column("heartbeat", BigInteger))
+agent_checkpoints_t = Table("agent_checkpoints", _meta, Column("name", String(255), primary_key=True),
+                            Column("data", LargeBinary), Column("created", BigInteger))
+
 
 def now_ms() -> int:
     return int(time.time() * 1000)

@@ -125,6 +125,7 @@ def _session(app, page):
 def test_two_processes_behind_nginx_share_everything_and_survive_a_kill(browser, pg_schema_url, tmp_path):  # noqa: F811
     from kinetix.formats import build
     from kinetix.levels import to_document
+    from server.agents.queue import TrainingQueue
     from server.app import App, Config
     from server.drafts.table import TableDraftStore
     from server.gallery.store import Store
@@ -177,6 +178,9 @@ def test_two_processes_behind_nginx_share_everything_and_survive_a_kill(browser,
                        root_path="/kinetix/", write_limit=WRITE_LIMIT)).start()
         assert b.wait_until_warm(timeout=600)
         assert b.shared and type(b.drafts).__name__ == "TableDraftStore"
+        # A's `kinetix serve` takes training runs from the shared queue: its worker slot is registered there (B runs
+        # no agents here; tests/server/test_training_shared.py runs a tab's job across two servers).
+        assert TrainingQueue(store).slots() == 1
 
         # Listed on B; the best run made on A is served by B.
         status, page = _call(b_port, "GET", "/kinetix/api/levels?q=falls")

@@ -57,6 +57,15 @@ def store(db_url: str):
 
 
 @pytest.fixture
+def two(db_url: str):
+    """Two stores on one database: what two server processes see."""
+    first, second = Store(db_url, seed_dir=None), Store(db_url, seed_dir=None)
+    yield first, second
+    first.close()
+    second.close()
+
+
+@pytest.fixture
 def client(store: Store):
     from fastapi.testclient import TestClient
 

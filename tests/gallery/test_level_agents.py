@@ -4,6 +4,7 @@ data intact, specialists attach only with a real checkpoint inside the agents di
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 from sqlalchemy import create_engine, text
@@ -69,6 +70,11 @@ def test_attach_refuses_bad_runs_and_lists_only_existing_checkpoints(store, tmp_
     assert len(agents.list(level_id)) == 1
     (tmp_path / "agents" / "run" / "checkpoint" / "config.json").unlink()
     (tmp_path / "agents" / "run" / "checkpoint").rmdir()
+    if store.dialect != "sqlite":  # several processes: the shared copy brings a lost folder back ...
+        assert [row["path"].is_dir() for row in agents.list(level_id)] == [True]
+        shutil.rmtree(tmp_path / "agents" / "run" / "checkpoint")
+        with store._write() as conn:  # ... unless it is gone too
+            conn.execute(text("DELETE FROM agent_checkpoints"))
     assert agents.list(level_id) == [], "a row whose checkpoint is gone is not offered"
 
 
@@ -89,3 +95,51 @@ def test_only_the_levels_author_can_attach_an_agent(store, tmp_path):
     assert [row["steps"] for row in agents.list(level_id)] == [1]
     agents.attach(level_id, "run", token=None, admin=True, steps=2)  # the admin (server-side tools) may
     assert len(agents.list(level_id)) == 2
+
+
+def test_a_specialist_attached_on_one_process_is_offered_by_another_on_postgresql(db_url, tmp_path):
+    """Two stores (two processes, each its own agents dir): on PostgreSQL B fetches A's checkpoint from the table
+    agent_checkpoints; with SQLite the folder is the only copy, as before (one process)."""
+    first, second = Store(db_url, seed_dir=None), Store(db_url, seed_dir=None)
+    try:
+        level_id, token = first.create_level("level", level_doc())
+        a, b = LevelAgents(first, tmp_path / "a"), LevelAgents(second, tmp_path / "b")
+        _checkpoint(tmp_path / "a", "run-1")
+        (tmp_path / "a" / "run-1" / "checkpoint" / "params.msgpack").write_bytes(bytes(range(256)) * 8)
+        agent_id = a.attach(level_id, "run-1", token=token, steps=100)
+        listed = b.list(level_id)
+        if first.dialect == "sqlite":
+            assert listed == [] and b.remove_orphans() == 0
+            return
+        assert [row["id"] for row in listed] == [agent_id]
+        fetched = tmp_path / "b" / "run-1" / "checkpoint"
+        assert listed[0]["path"] == fetched
+        assert (fetched / "params.msgpack").read_bytes() == bytes(range(256)) * 8
+        assert (fetched / "config.json").read_text() == "{}"
+        assert b.remove_orphans() == 0, "a stored checkpoint a specialist names stays"
+        first.delete_level(level_id, token)
+        assert b.remove_orphans() == 1, "its level deleted, nothing names it any more"
+    finally:
+        first.close()
+        second.close()
+
+
+def test_a_packed_checkpoint_is_checked_before_anything_is_written(tmp_path):
+    import io
+    import tarfile
+
+    from server.gallery.checkpoints import CheckpointError, pack_checkpoint, unpack_checkpoint
+
+    _checkpoint(tmp_path, "run")
+    data = pack_checkpoint(tmp_path / "run" / "checkpoint")
+    assert (unpack_checkpoint(data, tmp_path / "copy") / "config.json").read_text() == "{}"
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w") as archive:
+        info = tarfile.TarInfo("../escape")
+        info.size = 2
+        archive.addfile(info, io.BytesIO(b"no"))
+    for bad, why in ((buffer.getvalue(), "not a plain file"), (b"not a tar at all", "not a packed checkpoint")):
+        with pytest.raises(CheckpointError, match=why):
+            unpack_checkpoint(bad, tmp_path / "bad")
+        assert not (tmp_path / "bad").exists() and not (tmp_path / "escape").exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == [], "no partial folder left"

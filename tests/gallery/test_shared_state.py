@@ -9,17 +9,7 @@ import pytest
 from server.drafts.store import DraftError, draft_document, read_draft
 from server.drafts.table import TableDraftStore
 from server.gallery.limits import RateLimited, SharedRateLimits
-from server.gallery.store import Store
 from server.web.proxies import TrustedProxies
-
-
-@pytest.fixture
-def two(db_url: str):
-    """Two stores on one database: what two server processes see."""
-    first, second = Store(db_url, seed_dir=None), Store(db_url, seed_dir=None)
-    yield first, second
-    first.close()
-    second.close()
 
 
 def _document(name: str) -> dict:

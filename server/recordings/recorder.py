@@ -9,7 +9,9 @@
   frames) in memory for a download of a play still running;
 - frame_pushed passes every pushed JPEG on; the Recorder keeps at most one per 0.1 s of simulated time;
 - play_ended (also for a play cut short by Stop, a new play or the tab going away) finishes the file on the
-  finisher thread (close: drain, footer, fsync, rename), so the target is a complete recording or nothing.
+  finisher thread (close: drain, footer, fsync, rename), so the target is a complete recording or nothing. A play
+  that ended before its first step (e.g. `?mode=play` waiting for a key when the tab reloads) is thrown away: it
+  does not replace the tab's last play.
 
 Times in the file are simulated seconds (steps x frame skip x dt), as for the gallery's best times, so a pause
 or a slow machine does not stretch a recording.
@@ -343,15 +345,32 @@ class PlayRecorder(PlayListener):
 
     def _finish(self, session: Session, live: LiveRecording, result: str, steps: int) -> None:
         live.stop_adding()
+        if not live.count:  # ended before its first step (a play waiting for its first key that the tab left, or
+            # Esc): nothing was played, so it replaces neither the tab's last play nor, after a reload, its row
+            self._submit(self._drop, live, result)
+            return
         with self._lock:
             previous = self._last.get(session)
             self._last[session] = live
         tab = getattr(session, "tab_key", None) if self.table is not None else None
         ended = time.time()  # the order of a tab's plays, even when two processes finish them
+        self._submit(self._close, live, previous, result, steps, tab, ended)
+
+    def _submit(self, function, *args) -> None:
         try:
-            self._finisher.submit(self._close, live, previous, result, steps, tab, ended)
-        except RuntimeError:  # the server is shutting down (the finisher is closed): finish here
-            self._close(live, previous, result, steps, tab, ended)
+            self._finisher.submit(function, *args)
+        except RuntimeError:  # the server is shutting down (the finisher is closed): do it here
+            function(*args)
+
+    def _drop(self, live: LiveRecording, result: str) -> None:
+        """Throw away the recording of a play that never stepped (its partial file goes)."""
+        try:
+            if live.recorder is not None:
+                live.recorder.abort()
+        except (RecordingError, OSError) as error:
+            log.warning("recording %s not removed: %s", live.path.name, error)
+        meta = live.metadata
+        live.done.set_result(Finished(None, meta["player"], meta["level_id"] or None, result, 0, 0.0))
 
     def _close(self, live: LiveRecording, previous: LiveRecording | _Fetched | None, result: str, steps: int,
                tab: str | None = None, ended: float = 0.0) -> None:
@@ -398,7 +417,10 @@ class PlayRecorder(PlayListener):
             self._live.clear()
         for recording in live:
             recording.stop_adding()
-            self._finisher.submit(self._close, recording, None, "stopped", recording.count)
+            if recording.count:
+                self._finisher.submit(self._close, recording, None, "stopped", recording.count)
+            else:
+                self._finisher.submit(self._drop, recording, "stopped")
         self._finisher.shutdown(wait=True)
         if self._heartbeat is not None:
             self._heartbeat.join(timeout=10)

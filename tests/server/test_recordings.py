@@ -528,7 +528,8 @@ def test_a_reload_gets_the_tabs_last_play_back_from_the_database(app, make_clien
         keys.close()
     _wait(lambda: table.get(tab) is not None)
     assert table.get(tab).data == played, "stored once complete, as written"
-    client.close()  # the reload: this session goes, a new one comes with the tab's key
+    session.play(wait=True)  # as ?mode=play does: a play waiting for its first key...
+    client.close()  # ...when the tab reloads: this session goes, a new one comes with the tab's key
     client = make_client(app)
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce, tab=tab)

@@ -385,9 +385,9 @@ class PlayRecorder(PlayListener):
             log.exception("recording %s not finished", live.path.name)
         meta = live.metadata
         finished = Finished(path, meta["player"], meta["level_id"] or None, result, steps, steps * live.tick)
-        live.done.set_result(finished)
-        if tab is not None and path is not None:
+        if tab is not None and path is not None:  # before `done`: once the play is finished, it is shared
             self._share(tab, finished, ended)
+        live.done.set_result(finished)
         if previous is not None and previous.done.done():
             old = previous.done.result().path
             if old is not None and old != path:
@@ -396,6 +396,8 @@ class PlayRecorder(PlayListener):
             self._sweep_recent()
         except OSError:
             log.debug("sweeping recent recordings failed", exc_info=True)
+        if tab is not None:
+            self._sweep_table()
 
     def _share(self, tab: str, finished: Finished, ended: float) -> None:
         """Put a complete recording in the table as the tab's last play; a failure is logged, the file stays."""
@@ -407,7 +409,6 @@ class PlayRecorder(PlayListener):
                                            finished.steps, finished.seconds, int(ended * 1000), data))
         except Exception:  # e.g. the database is away: the tab still has its play until it closes
             log.warning("recording %s not shared", finished.path.name, exc_info=True)
-        self._sweep_table()
 
     def close(self) -> None:
         """Finish every recording still open (server shutdown)."""

@@ -530,6 +530,8 @@ def test_a_reload_gets_the_tabs_last_play_back_from_the_database(app, make_clien
     assert table.get(tab).data == played, "stored once complete, as written"
     session.play(wait=True)  # as ?mode=play does: a play waiting for its first key...
     client.close()  # ...when the tab reloads: this session goes, a new one comes with the tab's key
+    _wait(lambda: session.closed)
+    assert _recorder(app).last_finished(session).path.read_bytes() == played, "a play that never stepped is dropped"
     client = make_client(app)
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce, tab=tab)

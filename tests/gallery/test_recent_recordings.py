@@ -11,19 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from server.gallery.store import Store
 from server.recordings.recent import RecentTable, StoredPlay
 from server.recordings.recorder import Finished, PlayRecorder
 
 TAB, OTHER = "a" * 32, "b" * 32
-
-
-@pytest.fixture
-def two(db_url: str):
-    first, second = Store(db_url, seed_dir=None), Store(db_url, seed_dir=None)
-    yield first, second
-    first.close()
-    second.close()
 
 
 def _table(store, **limits) -> RecentTable:

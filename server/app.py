@@ -257,6 +257,7 @@ class App:
                 log.info("removed %d partial or old recordings from %s", len(removed), directory)
         self.manager.add_listener(self.recorder)
         self.manager.add_listener(RecordingPanel(self.recorder))
+
     def _recent_table(self):
         """Each tab's last play in the gallery's database (server.recordings.recent), so a reload, through any
         process, finds it; None without the gallery or recordings. Its caps are the ones given (--recent-recordings,

@@ -157,9 +157,12 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="new gallery author or voter identities per hour per client address; 0 = no limit "
                              "(default: 10)")
     parser.add_argument("--recent-recordings", type=positive_int, metavar="N",
-                        help="most recordings kept in <data>/recordings/recent, oldest removed first (default: 32)")
+                        help="most recordings kept in <data>/recordings/recent and in the database's recent "
+                             "recordings (tabs' last plays), oldest removed first (default: 32; 500 in a shared "
+                             "PostgreSQL database)")
     parser.add_argument("--recent-recordings-mb", type=positive_int, metavar="MB",
-                        help="most megabytes kept in <data>/recordings/recent, oldest removed first (default: 64)")
+                        help="most megabytes kept in <data>/recordings/recent and in the database's recent "
+                             "recordings, oldest removed first (default: 64; 256 in a shared PostgreSQL database)")
 
 
 def _validate_arguments(parser: argparse.ArgumentParser) -> None:

@@ -250,13 +250,29 @@ class App:
             directory = Path(self.config.data or default_data_dir()) / "recordings"
         caps = {k: v for k, v in (("max_files", self.config.recent_max_files),
                                   ("max_bytes", self.config.recent_max_bytes)) if v is not None}
-        self.recorder = PlayRecorder(directory, enabled=self.config.record, **caps)
+        self.recorder = PlayRecorder(directory, enabled=self.config.record, table=self._recent_table(), **caps)
         if self.config.record:
             removed = self.recorder.clean_up()
             if removed:
                 log.info("removed %d partial or old recordings from %s", len(removed), directory)
         self.manager.add_listener(self.recorder)
         self.manager.add_listener(RecordingPanel(self.recorder))
+
+    def _recent_table(self):
+        """Each tab's last play in the gallery's database (server.recordings.recent), so a reload, through any
+        process, finds it; None without the gallery or recordings. Its caps are the ones given (--recent-recordings,
+        --recent-recordings-mb), else the folder's with SQLite (one process) and larger ones with PostgreSQL (the
+        table holds every process's tabs)."""
+        if self.store is None or not self.config.record:
+            return None
+        from server.recordings import recent
+        from server.recordings.recorder import RECENT_KEEP_S, RECENT_MAX_BYTES, RECENT_MAX_FILES
+
+        files, size = (recent.SHARED_RECENT_MAX_FILES, recent.SHARED_RECENT_MAX_BYTES) if self.shared else \
+            (RECENT_MAX_FILES, RECENT_MAX_BYTES)
+        return recent.RecentTable(self.store, max_files=self.config.recent_max_files or files,
+                                  max_bytes=self.config.recent_max_bytes or size, keep_s=RECENT_KEEP_S)
+
     def _attach_agents(self) -> None:
         """The Agent folder in every tab (after the gallery's hooks, so `?level=..&mode=agent` opens first)."""
         if not self.config.agents:

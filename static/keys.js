@@ -41,6 +41,24 @@
     if (token && localStorage.getItem(TOKEN_KEY) !== token) localStorage.setItem(TOKEN_KEY, token);
   }
 
+  // The tab's own key, in sessionStorage: per tab, and kept across reloads and reconnects (through any server
+  // process), so the server finds the tab's last play again for its Recordings folder. Made here, not by the
+  // server, so the first hello has it; crypto.getRandomValues works on plain http too (randomUUID does not).
+  const TAB_KEY = "kinetix.tab";
+  function tabKey() {
+    try {
+      let key = sessionStorage.getItem(TAB_KEY);
+      if (!key || !/^[0-9a-f]{32}$/.test(key)) {
+        const bytes = crypto.getRandomValues(new Uint8Array(16));
+        key = Array.from(bytes, (b) => b.toString(16).padStart(2, "0")).join("");
+        sessionStorage.setItem(TAB_KEY, key);
+      }
+      return key;
+    } catch (e) {
+      return null;  // storage turned off: the tab's last play stays with its session
+    }
+  }
+
   // The address bar names what the tab shows (?level=<gallery id> or ?draft=<id>): the session puts the query in
   // <div id="kinetix-address" data-query=...> and we show it, so a reload or a copied link reopens the same thing.
   function showAddress() {
@@ -72,7 +90,7 @@
     socket = own;
     // The query names what this tab had open: after a reconnect (a new session) the server reopens it.
     own.onopen = () => own.send(JSON.stringify({ type: "hello", nonce, query: location.search,
-      token: localStorage.getItem(TOKEN_KEY) }));
+      token: localStorage.getItem(TOKEN_KEY), tab: tabKey() }));
     own.onmessage = (ev) => {
       const message = JSON.parse(ev.data);
       if (message.type === "ready") {

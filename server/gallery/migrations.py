@@ -123,6 +123,21 @@ MIGRATIONS: list[tuple[int, str, list[str]]] = [
             data {blob} NOT NULL,
             created BIGINT NOT NULL)""",
     ]),
+    (7, "recent recordings: each tab's last play, found again after a reload through any process", [
+        """CREATE TABLE recent_recordings (
+            tab VARCHAR(64) PRIMARY KEY,
+            name VARCHAR(255) NOT NULL,
+            player VARCHAR(100) NOT NULL,
+            level_id VARCHAR(32),
+            result VARCHAR(16) NOT NULL,
+            steps INTEGER NOT NULL,
+            seconds DOUBLE PRECISION NOT NULL,
+            ended BIGINT NOT NULL,
+            seen BIGINT NOT NULL,
+            size_bytes BIGINT NOT NULL,
+            data {blob} NOT NULL)""",
+        "CREATE INDEX recent_recordings_seen ON recent_recordings (seen)",
+    ]),
 ]
 
 LATEST = MIGRATIONS[-1][0]

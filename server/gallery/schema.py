@@ -63,6 +63,12 @@ training_workers_t = Table("training_workers", _meta, Column("id", String(64), p
                            Column("slots", Integer), Column("heartbeat", BigInteger))
 agent_checkpoints_t = Table("agent_checkpoints", _meta, Column("name", String(255), primary_key=True),
                             Column("data", LargeBinary), Column("created", BigInteger))
+# Each tab's last play (migration 7; server.recordings.recent).
+recent_recordings_t = Table(
+    "recent_recordings", _meta, Column("tab", String(64), primary_key=True), Column("name", String(255)),
+    Column("player", String(100)), Column("level_id", String(32)), Column("result", String(16)),
+    Column("steps", Integer), Column("seconds", Float), Column("ended", BigInteger), Column("seen", BigInteger),
+    Column("size_bytes", BigInteger), Column("data", LargeBinary))
 
 
 def now_ms() -> int:

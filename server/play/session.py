@@ -92,6 +92,9 @@ class Session(PlayLoop):
         self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
         self._view = draw.View(512, 512)
         self.author_token: str | None = None  # the tab's gallery author token (from localStorage, via /keys)
+        # The tab's own random key (from sessionStorage, via /keys): the same after a reload or a reconnect through
+        # another process, so the tab's last play is found again (server.recordings.recent).
+        self.tab_key: str | None = None
         self._gallery_id: str | None = None  # the gallery level this tab opened or saved, if any
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self.replay = None  # a server.recordings.replay.Replay while the tab shows a recording (mode "replay")

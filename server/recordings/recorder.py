@@ -9,7 +9,9 @@
   frames) in memory for a download of a play still running;
 - frame_pushed passes every pushed JPEG on; the Recorder keeps at most one per 0.1 s of simulated time;
 - play_ended (also for a play cut short by Stop, a new play or the tab going away) finishes the file on the
-  finisher thread (close: drain, footer, fsync, rename), so the target is a complete recording or nothing.
+  finisher thread (close: drain, footer, fsync, rename), so the target is a complete recording or nothing. A play
+  that ended before its first step (e.g. `?mode=play` waiting for a key when the tab reloads) is thrown away: it
+  does not replace the tab's last play.
 
 Times in the file are simulated seconds (steps x frame skip x dt), as for the gallery's best times, so a pause
 or a slow machine does not stretch a recording.
@@ -21,6 +23,13 @@ first; the last play of a tab still open is never removed, and there are at most
 use stays bounded however many tabs come and go. Partial files (`.part`) that no live process owns are removed at
 start-up and on each sweep (kinetix.recording.remove_partial_files: the writing process holds a lock on them).
 The gallery keeps best runs elsewhere (server.gallery.runs).
+
+With the gallery's database (`table`, server.recordings.recent.RecentTable) a tab's last play also outlives its
+session and this process: once its file is complete it is put in the table under the tab's key (Session.tab_key,
+from the page's sessionStorage), and a new session of the same tab (a reload, or a reconnect through another
+process) that has no play of its own yet gets it from there (`last_finished` fetches it into recent/). The table
+has the same kinds of limits, across every process on the database: one row per tab, the open tabs' rows marked as
+seen every HEARTBEAT_S by a thread here, closed tabs' rows removed after RECENT_KEEP_S or over its caps.
 """
 
 from __future__ import annotations
@@ -30,6 +39,7 @@ import dataclasses
 import logging
 import math
 import os
+import re
 import secrets
 import tempfile
 import threading
@@ -54,6 +64,7 @@ RECENT_MAX_BYTES = 64 << 20  # ... and this many bytes (a typical play is 20-100
 MAX_LOGGED_STEPS = 100_000  # the in-memory copy for downloads mid-play (episodes end at their time limit anyway)
 MAX_LOGGED_FRAME_BYTES = 32 << 20  # its frames (flat drawings: 3-6 KB each, so about 10 minutes at 10 Hz)
 FINISH_TIMEOUT_S = 60.0
+STORED_NAME = re.compile(r"play-[A-Za-z0-9_-]{1,200}\.mcap")  # what play_started names a file (and a table row)
 
 
 @dataclasses.dataclass
@@ -66,6 +77,15 @@ class Finished:
     result: str  # solved | failed | truncated | nan | stopped
     steps: int
     seconds: float
+
+
+class _Fetched:
+    """A tab's last play fetched from the table into recent/, held as a session's last play (like a LiveRecording's
+    `done`)."""
+
+    def __init__(self, finished: Finished):
+        self.done: concurrent.futures.Future[Finished] = concurrent.futures.Future()
+        self.done.set_result(finished)
 
 
 class _Bodies(types.SimpleNamespace):
@@ -177,20 +197,27 @@ class PlayRecorder(PlayListener):
     """Records every play of every session; see the module docstring. `enabled=False` records nothing."""
 
     def __init__(self, directory: str | os.PathLike, *, enabled: bool = True, max_files: int = RECENT_MAX_FILES,
-                 max_bytes: int = RECENT_MAX_BYTES):
+                 max_bytes: int = RECENT_MAX_BYTES, table=None):
         self.directory = Path(directory)
         self.recent = self.directory / RECENT_DIR
         self.enabled = enabled
         self.max_files, self.max_bytes = max_files, max_bytes
+        self.table = table if enabled else None  # server.recordings.recent.RecentTable, or None: this process only
         self._lock = threading.Lock()
+        self._sessions: weakref.WeakSet[Session] = weakref.WeakSet()  # open sessions (their tabs' rows are seen)
         # Keyed by the session itself, weakly: an entry goes with its session, and a closed tab's last play stays
         # reachable for as long as someone holds the session (e.g. the gallery's record_play thread after a solve).
         self._live: weakref.WeakKeyDictionary[Session, LiveRecording] = weakref.WeakKeyDictionary()
         self._last: weakref.WeakKeyDictionary[Session, LiveRecording] = weakref.WeakKeyDictionary()
         # Closing a recording waits for its writer (drain, fsync): never on the play thread.
         self._finisher = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinetix-rec")
+        self._stopping = threading.Event()
+        self._heartbeat: threading.Thread | None = None
         if enabled:
             self.recent.mkdir(parents=True, exist_ok=True)
+        if self.table is not None:
+            self._heartbeat = threading.Thread(target=self._beat, name="kinetix-rec-seen", daemon=True)
+            self._heartbeat.start()
 
     # ------------------------------------------------------------------ start-up and retention
 
@@ -198,7 +225,30 @@ class PlayRecorder(PlayListener):
         """Remove partial files that no live process owns (a killed server's; another live server's are kept) and
         sweep recent/ (see _sweep_recent). Returns what was removed."""
         removed = remove_partial_files(self.directory) + remove_partial_files(self.recent)
+        self._sweep_table()
         return removed + self._sweep_recent()
+
+    def _sweep_table(self) -> None:
+        if self.table is None:
+            return
+        try:
+            gone = self.table.sweep()
+        except Exception:  # the database is away: the next sweep tries again; plays go on
+            log.warning("sweeping the recent recordings' table failed", exc_info=True)
+            return
+        if gone:
+            log.debug("removed %d recent recordings from the table", len(gone))
+
+    def _beat(self) -> None:
+        """Mark the open tabs' rows as seen (so no sweep in any process removes them) and sweep, every HEARTBEAT_S."""
+        while not self._stopping.wait(self.table.heartbeat_s):
+            with self._lock:
+                tabs = {s.tab_key for s in self._sessions if getattr(s, "tab_key", None) and not s.closed}
+            try:
+                self.table.touch(tabs)
+            except Exception:
+                log.warning("marking open tabs' recent recordings failed", exc_info=True)
+            self._sweep_table()
 
     def _sweep_recent(self) -> list[Path]:
         """Remove, oldest first, the recent/ files no open tab holds that are older than RECENT_KEEP_S or that put
@@ -230,6 +280,10 @@ class PlayRecorder(PlayListener):
         return removed
 
     # ------------------------------------------------------------------ PlayListener
+
+    def session_opened(self, session: Session) -> None:
+        with self._lock:
+            self._sessions.add(session)
 
     def play_started(self, session: Session, level_file, params) -> None:
         if not self.enabled:
@@ -271,22 +325,55 @@ class PlayRecorder(PlayListener):
     def session_closed(self, session: Session) -> None:
         with self._lock:
             live = self._live.pop(session, None)
+            self._sessions.discard(session)
         if live is not None:  # Session.close ends a running play first; this is a safety net
             self._finish(session, live, "stopped", live.count)
+        tab = getattr(session, "tab_key", None)
+        if self.table is not None and tab:
+            try:  # after the store of its last play (same thread): the tab's keep time starts now
+                self._finisher.submit(self._touch, tab)
+            except RuntimeError:  # shutting down
+                pass
+
+    def _touch(self, tab: str) -> None:
+        try:
+            self.table.touch([tab])
+        except Exception:
+            log.warning("marking a closed tab's recent recording failed", exc_info=True)
 
     # ------------------------------------------------------------------ finishing
 
     def _finish(self, session: Session, live: LiveRecording, result: str, steps: int) -> None:
         live.stop_adding()
+        if not live.count:  # ended before its first step (a play waiting for its first key that the tab left, or
+            # Esc): nothing was played, so it replaces neither the tab's last play nor, after a reload, its row
+            self._submit(self._drop, live, result)
+            return
         with self._lock:
             previous = self._last.get(session)
             self._last[session] = live
-        try:
-            self._finisher.submit(self._close, live, previous, result, steps)
-        except RuntimeError:  # the server is shutting down (the finisher is closed): finish here
-            self._close(live, previous, result, steps)
+        tab = getattr(session, "tab_key", None) if self.table is not None else None
+        ended = time.time()  # the order of a tab's plays, even when two processes finish them
+        self._submit(self._close, live, previous, result, steps, tab, ended)
 
-    def _close(self, live: LiveRecording, previous: LiveRecording | None, result: str, steps: int) -> None:
+    def _submit(self, function, *args) -> None:
+        try:
+            self._finisher.submit(function, *args)
+        except RuntimeError:  # the server is shutting down (the finisher is closed): do it here
+            function(*args)
+
+    def _drop(self, live: LiveRecording, result: str) -> None:
+        """Throw away the recording of a play that never stepped (its partial file goes)."""
+        try:
+            if live.recorder is not None:
+                live.recorder.abort()
+        except (RecordingError, OSError) as error:
+            log.warning("recording %s not removed: %s", live.path.name, error)
+        meta = live.metadata
+        live.done.set_result(Finished(None, meta["player"], meta["level_id"] or None, result, 0, 0.0))
+
+    def _close(self, live: LiveRecording, previous: LiveRecording | _Fetched | None, result: str, steps: int,
+               tab: str | None = None, ended: float = 0.0) -> None:
         path = None
         live.steps, live.frames = [], []  # only a running play's download needs them; _last keeps this object
         try:
@@ -297,8 +384,10 @@ class PlayRecorder(PlayListener):
         except Exception:  # a bug must not leave `done` unresolved (the gallery and downloads wait on it)
             log.exception("recording %s not finished", live.path.name)
         meta = live.metadata
-        live.done.set_result(Finished(path, meta["player"], meta["level_id"] or None, result, steps,
-                                      steps * live.tick))
+        finished = Finished(path, meta["player"], meta["level_id"] or None, result, steps, steps * live.tick)
+        if tab is not None and path is not None:  # before `done`: once the play is finished, it is shared
+            self._share(tab, finished, ended)
+        live.done.set_result(finished)
         if previous is not None and previous.done.done():
             old = previous.done.result().path
             if old is not None and old != path:
@@ -307,16 +396,35 @@ class PlayRecorder(PlayListener):
             self._sweep_recent()
         except OSError:
             log.debug("sweeping recent recordings failed", exc_info=True)
+        if tab is not None:
+            self._sweep_table()
+
+    def _share(self, tab: str, finished: Finished, ended: float) -> None:
+        """Put a complete recording in the table as the tab's last play; a failure is logged, the file stays."""
+        from server.recordings.recent import StoredPlay  # with the gallery's database only (sqlalchemy)
+
+        try:
+            data = finished.path.read_bytes()
+            self.table.put(tab, StoredPlay(finished.path.name, finished.player, finished.level_id, finished.result,
+                                           finished.steps, finished.seconds, int(ended * 1000), data))
+        except Exception:  # e.g. the database is away: the tab still has its play until it closes
+            log.warning("recording %s not shared", finished.path.name, exc_info=True)
 
     def close(self) -> None:
         """Finish every recording still open (server shutdown)."""
+        self._stopping.set()
         with self._lock:
             live = list(self._live.values())
             self._live.clear()
         for recording in live:
             recording.stop_adding()
-            self._finisher.submit(self._close, recording, None, "stopped", recording.count)
+            if recording.count:
+                self._finisher.submit(self._close, recording, None, "stopped", recording.count)
+            else:
+                self._finisher.submit(self._drop, recording, "stopped")
         self._finisher.shutdown(wait=True)
+        if self._heartbeat is not None:
+            self._heartbeat.join(timeout=10)
 
     # ------------------------------------------------------------------ for the tab's panel and the gallery
 
@@ -325,9 +433,41 @@ class PlayRecorder(PlayListener):
         with self._lock:
             live = self._last.get(session)
         if live is None:
-            return None
+            return self._fetch(session, timeout)
         try:
             return live.done.result(timeout=timeout)
+        except concurrent.futures.TimeoutError:
+            return None
+
+    def _fetch(self, session: Session, timeout: float) -> Finished | None:
+        """The tab's last play from the table (a session with no play of its own yet: a reload, or a reconnect
+        through another process), copied into recent/ and held as the session's last play; None if there is none."""
+        tab = getattr(session, "tab_key", None)
+        if self.table is None or not tab:
+            return None
+        try:
+            stored = self.table.get(tab)
+        except Exception:
+            log.warning("could not look up the tab's recent recording", exc_info=True)
+            return None
+        if stored is None or not STORED_NAME.fullmatch(stored.name):
+            return None
+        path = self.recent / stored.name
+        partial = self.recent / f".{stored.name}.{secrets.token_hex(4)}.fetch.part"
+        try:
+            partial.write_bytes(stored.data)
+            os.replace(partial, path)
+        except OSError as error:
+            log.warning("recording %s not fetched: %s", stored.name, error)
+            return None
+        finally:
+            partial.unlink(missing_ok=True)
+        fetched = _Fetched(Finished(path, stored.player, stored.level_id, stored.result, stored.steps,
+                                    stored.seconds))
+        with self._lock:
+            held = self._last.setdefault(session, fetched)  # a play of its own that ended meanwhile comes first
+        try:
+            return held.done.result(timeout=timeout)
         except concurrent.futures.TimeoutError:
             return None
 

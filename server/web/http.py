@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -37,6 +38,7 @@ log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 KEY_FIELDS = ("ctrl", "shift", "alt", "meta")
 MAX_KEY_MESSAGE = 1024  # bytes; anything longer is not a key event
+TAB_KEY = re.compile(r"[A-Za-z0-9_-]{16,64}")  # a tab's key as keys.js makes it (32 hex digits); others are ignored
 # The largest message a browser may send on any websocket of the side server (uvicorn's ws_max_size): viser's
 # client uploads files in 512 KiB parts, msgpack-framed. Key events are cut at MAX_KEY_MESSAGE anyway.
 MAX_BROWSER_MESSAGE = 1 << 20
@@ -122,6 +124,8 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                 return
             if isinstance(hello.get("token"), str) and hello["token"]:
                 session.author_token = hello["token"]  # the gallery author token the browser keeps
+            if isinstance(hello.get("tab"), str) and TAB_KEY.fullmatch(hello["tab"]):
+                session.tab_key = hello["tab"]  # the tab's key in sessionStorage (its last play is kept under it)
             query = hello.get("query")
             if isinstance(query, str) and manager.on_query is not None and session not in opened:
                 # e.g. /?level=<gallery id>&mode=play, ?draft=<id>, or "" (a new tab gets a draft id): the page's

@@ -1,7 +1,7 @@
 """Two `kinetix serve` processes on one PostgreSQL database behind nginx, run with docs/deploy.md's own nginx
 config (issue 34): saved on A, listed on B; a draft made on A reopens on B; a best run made on A replays on B;
 `kill -9` A under open tabs: they come back through nginx on B, one with its draft; votes and rate limits count
-across both.
+across both; a tab's last play, recorded on A, is in its Recordings folder after a reload on B.
 
 A is a real `python -m kinetix serve` process (so it can be killed); B runs in this process, so the test can look
 at B's sessions. Tabs go through nginx only. B starts after the tabs did their work on A (nginx sends a client
@@ -125,6 +125,7 @@ def _session(app, page):
 def test_two_processes_behind_nginx_share_everything_and_survive_a_kill(browser, pg_schema_url, tmp_path):  # noqa: F811
     from kinetix.formats import build
     from kinetix.levels import to_document
+    from kinetix.recording import read_recording
     from server.agents.queue import TrainingQueue
     from server.app import App, Config
     from server.drafts.table import TableDraftStore
@@ -222,6 +223,11 @@ def test_two_processes_behind_nginx_share_everything_and_survive_a_kill(browser,
         replaying = _session(b, player)
         wait_until(lambda: replaying.mode == "replay" and replaying.replay is not None, timeout=60)
         wait_until(lambda: replaying.replay.frames_pushed >= 2, timeout=60)
+
+        # The player's last play, recorded on A, is in its Recordings folder on B after the reload.
+        last = b.recorder.last_finished(replaying)
+        assert last is not None and (last.result, last.level_id, last.player) == ("solved", level_id, "human")
+        assert read_recording(last.path).metadata["level_id"] == level_id
     finally:
         if context is not None:
             context.close()

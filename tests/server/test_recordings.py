@@ -510,6 +510,45 @@ def test_a_recording_that_cannot_be_written_does_not_stop_the_play(app, make_cli
     _wait(lambda: "No download:" in _status(client) and "could not be recorded" in _status(client))
 
 
+def test_a_reload_gets_the_tabs_last_play_back_from_the_database(app, make_client):
+    import secrets
+
+    tab, table = secrets.token_hex(16), _recorder(app).table  # the key keys.js keeps in the tab's sessionStorage
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce, tab=tab)
+    try:
+        assert session.tab_key == tab
+        session.toggle_play()
+        _wait(lambda: session._steps >= 5)
+        assert table.get(tab) is None, "a play in progress is not in the table"
+        session.stop()
+        played = _recorder(app).last_finished(session).path.read_bytes()
+    finally:
+        keys.close()
+    _wait(lambda: table.get(tab) is not None)
+    assert table.get(tab).data == played, "stored once complete, as written"
+    session.play(wait=True)  # as ?mode=play does: a play waiting for its first key...
+    client.close()  # ...when the tab reloads: this session goes, a new one comes with the tab's key
+    _wait(lambda: session.closed)
+    assert _recorder(app).last_finished(session).path.read_bytes() == played, "a play that never stepped is dropped"
+    client = make_client(app)
+    session, nonce = _session(app, client)
+    keys = KeysSocket(app.port, nonce, tab=tab)
+    try:
+        finished = _recorder(app).last_finished(session)
+        assert finished.path.read_bytes() == played and finished.result == "stopped"
+        _click(client, "Replay last play")
+        _wait(lambda: session.mode == "replay" and session.replay.frames_pushed >= 1)
+    finally:
+        keys.close()
+    session.stop()
+    other = make_client(app)
+    session, nonce = _session(app, other)
+    KeysSocket(app.port, nonce, tab="../" + tab).close()  # not a tab key: ignored
+    assert session.tab_key is None and _recorder(app).last_finished(session) is None
+
+
 def test_server_start_removes_partial_recordings_and_orphaned_best_runs(tmp_path):
     import os
 

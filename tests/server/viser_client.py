@@ -174,12 +174,12 @@ class KeysSocket:
     """The /keys websocket as keys.js speaks it: hello with the tab's nonce, then down/up events."""
 
     def __init__(self, port: int, nonce: str, host: str = "127.0.0.1", query: str = "", token: str | None = None,
-                 path: str = ""):
+                 path: str = "", tab: str | None = None):
         import json
 
         self._json = json
         self.ws = websockets.sync.client.connect(f"ws://{host}:{port}{path}/keys", open_timeout=10)
-        self.ws.send(json.dumps({"type": "hello", "nonce": nonce, "query": query, "token": token}))
+        self.ws.send(json.dumps({"type": "hello", "nonce": nonce, "query": query, "token": token, "tab": tab}))
         self.reply = json.loads(self.ws.recv(timeout=10))
         self.seq = 0
 

@@ -96,6 +96,8 @@ class Session(PlayLoop):
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self.replay = None  # a server.recordings.replay.Replay while the tab shows a recording (mode "replay")
         self.ended_player = "human"  # the player of the last play that ended (see finish_step)
+        self.query_lock = threading.Lock()  # held while the page's address is opened (SessionManager.open_query)
+        self.query_opened = False
 
         # The level first, then the panel: the page draws this frame before viser builds the panel, which keeps
         # the browser's main thread busy for a second or more (the canvas stayed blank that long, issue 37).

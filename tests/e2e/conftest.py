@@ -184,3 +184,24 @@ class Tab:
 
     def close(self) -> None:
         self.context.close()
+
+
+class Screencast:
+    """What Chromium painted for a page, picture by picture (the DevTools screencast), across navigations: a test
+    can check every picture the user saw, not just the state at the moments it looked."""
+
+    def __init__(self, page):
+        self.pictures: list[bytes] = []
+        self._cdp = page.context.new_cdp_session(page)
+        self._cdp.on("Page.screencastFrame", self._take)
+        self._cdp.send("Page.startScreencast", {"format": "png", "everyNthFrame": 1})
+
+    def _take(self, event) -> None:
+        import base64
+
+        self.pictures.append(base64.b64decode(event["data"]))
+        self._cdp.send("Page.screencastFrameAck", {"sessionId": event["sessionId"]})
+
+    def stop(self) -> list[bytes]:
+        self._cdp.send("Page.stopScreencast")
+        return self.pictures

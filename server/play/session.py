@@ -87,6 +87,7 @@ class Session(PlayLoop):
         self._pending_push = None  # the Future of this session's frame being encoded and sent, if any
         self._next_tick: float | None = None
         self._message: str | None = None
+        self._status: str | None = None  # what the tab waits for (show_status)
         self._waiting_play: tuple | None = None  # (controller, wait) of a play asked for before its step compiled
         self._pushed_key = None  # what the last edit-mode frame showed, to push only on change
         self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
@@ -270,7 +271,7 @@ class Session(PlayLoop):
 
             self._play = (stepper, state, params)
             self.clockwise = clockwise_values(level_file.level)
-            self._steps, self._result, self._message = 0, None, None
+            self._steps, self._result, self._message, self._status = 0, None, None, None
             self._step_request = False
             self.controller = controller
             self.mode = "ready" if wait else "play"
@@ -369,6 +370,15 @@ class Session(PlayLoop):
                 self._step_request = True
                 self.manager.scheduler.wake()
 
+    def show_status(self, text: str | None) -> None:
+        """Say on the canvas what the tab waits for ("loading agent general ..."), over the level it shows while
+        editing (a message of the tab's own, such as a refusal, goes first); None clears it, and so does a play
+        that starts."""
+        with self.lock:
+            if text != self._status:
+                self._status = text
+                self.refresh()
+
     def set_buttons(self) -> None:
         """The Play folder's buttons follow the mode (server.play.buttons)."""
         self.buttons.update(self.mode)
@@ -398,7 +408,7 @@ class Session(PlayLoop):
                 self.editor.snap_radius = SNAP_PIXELS / self._view.scale  # the same few pixels at any canvas size
             level = self.editor.level_file().level
             overlay = self.editor.overlay()
-            message = getattr(overlay, "message", None) or self._message
+            message = getattr(overlay, "message", None) or self._message or self._status
             return draw.draw_frame(draw.scene_of(level), self._view, overlay=overlay, hud=self.hud(), message=message)
         stepper, state, params = self._play
         banner = START_HINT if self.mode == "ready" else ""
@@ -420,7 +430,7 @@ class Session(PlayLoop):
         with self.lock:
             if self.closed or self.mode not in ("edit", "ready"):  # a waiting play is redrawn like an edit
                 return
-            key = (getattr(self.editor, "revision", None), self.canvas(), self._message, self.mode,
+            key = (getattr(self.editor, "revision", None), self.canvas(), self._message, self._status, self.mode,
                    self.manager.preparing())
             if not force and key == self._pushed_key:
                 return

@@ -101,7 +101,10 @@ class SessionManager:
             if session is not None and gone:
                 session.close()
         if session is not None and not gone and query is not None:
-            self.open_query(session, query)
+            try:
+                self.open_query(session, query)
+            except Exception:  # a bug in a hook must not leave the tab half-opened without a word in the log
+                log.exception("could not open %r in a new tab", query)
 
     def open_query(self, session: Session, query: str) -> None:
         """Open what the page's address names (on_query: `?level=<id>&mode=agent`, `?draft=<id>`), once per session:
@@ -119,7 +122,13 @@ class SessionManager:
         """A JPEG of the level the address `query` names, drawn as a tab's first frame would be, for the page itself
         to show until its session's first frame arrives (server.web.http); None if it names none or cannot be drawn."""
         level_file = self.level_named(query)
-        return None if level_file is None else preview_jpeg(level_file.level)
+        if level_file is None:
+            return None
+        try:
+            return preview_jpeg(level_file.level)
+        except Exception:  # the page must come anyway; its session draws (or refuses) the level itself
+            log.exception("could not draw the preview of %r", query)
+            return None
 
     def level_named(self, query: str):
         """The LevelFile the address `query` names (level_of_query), None if none; never raises: a level that no longer

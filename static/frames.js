@@ -11,11 +11,11 @@
 // for pointer input (the overlay ignores the pointer), and every other message still goes to viser.
 //
 // Until the first frame arrives, the overlay shows the level the page's address names (?level=, ?draft=): the
-// server puts its picture in the page (<img id="kinetix-preview">, server/web/http.py), which shows it until viser's
-// canvas exists, and it is drawn on the canvas the moment it does. The first frame can only come after viser's client has started, connected and had its
-// session built, about a second later; the canvas was blank until then (issue 37). And viser's websocket carries
-// the page's query, so the session opens that level at once (server/web/relay.py) instead of first showing a new
-// level and waiting for keys.js to tell it the address over /keys.
+// server puts its picture in the page (<img id="kinetix-preview">, server/web/http.py), which shows it until
+// viser's canvas exists, and it is drawn on the canvas the moment it does. The first frame can only come after
+// viser's client has started, connected and had its session built, about a second later; the canvas was blank
+// until then (issue 37). And viser's websocket carries the page's query, so the session opens that level at once
+// (server/web/relay.py) instead of first showing a new level and waiting for keys.js to tell it the address.
 (function () {
   "use strict";
   const state = {
@@ -25,7 +25,6 @@
     latest: 0, // sequence number of the newest frame received
     shown: 0, // ... and of the newest frame drawn
     drawn: 0, // frames drawn so far (tests and the benchmark read it)
-    previewed: false, // the page's level picture was drawn (drawPreview)
     hidden: false,
     listeners: [], // callbacks (seq, acks) after each draw, for the benchmark
   };
@@ -114,6 +113,7 @@
     }
     state.context.drawImage(bitmap, 0, 0);
     bitmap.close();
+    if (state.drawn === 0) hidePreview();
     state.shown = seq;
     state.drawn += 1;
     for (const listener of state.listeners) listener(seq, acks);
@@ -137,8 +137,12 @@
     const w = image.naturalWidth * scale;
     const h = image.naturalHeight * scale;
     context.drawImage(image, (width - w) / 2, (height - h) / 2, w, h);
-    state.previewed = true;
-    image.style.display = "none"; // it stood in for the canvas until now (server/web/http.py: with_preview)
+    hidePreview(); // it stood in for the canvas until now (server/web/http.py: with_preview)
+  }
+
+  function hidePreview() {
+    const image = document.getElementById("kinetix-preview");
+    if (image) image.style.display = "none";
   }
 
   // viser creates its canvas a few hundred milliseconds after the page starts (and could replace it): draw the

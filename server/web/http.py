@@ -72,7 +72,8 @@ def with_preview(page: str, jpeg: bytes, letterbox: tuple[int, int, int]) -> str
     if body < 0:
         return page  # the page still works without it
     colour = "#" + "".join(f"{channel:02x}" for channel in letterbox)
-    style = f"position:fixed;inset:0;width:100%;height:100%;object-fit:contain;background:{colour}"
+    # Under everything viser draws (z-index -1): it shows only until viser's canvas covers it.
+    style = f"position:fixed;inset:0;z-index:-1;width:100%;height:100%;object-fit:contain;background:{colour}"
     image = (f'<img id="kinetix-preview" alt="" decoding="sync" data-letterbox="{colour}" style="{style}" '
              f'src="data:image/jpeg;base64,{base64.b64encode(jpeg).decode()}">')
     return page[: body + 6] + image + page[body + 6:]

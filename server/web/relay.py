@@ -124,8 +124,6 @@ async def relay_to_viser(socket: WebSocket, viser_port: int, token: str | None =
             await socket.close(code=code, reason=upstream.close_reason or "")
 
 
-
-
 def page_query(server, client_id: int) -> str | None:
     """The query of the page whose websocket became viser client `client_id` ("?level=...&mode=agent"), as the relay
     passed it on; None when it named none (a bare address, an older page, a client that came straight to viser's

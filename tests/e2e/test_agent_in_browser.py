@@ -110,9 +110,9 @@ def test_watch_agent_shows_the_level_before_the_panel(browser, app):
 BALL, BLOCK = (0, 204, 0), (0, 51, 102)  # falling_win_spec's green ball and fixed blue block (kinetix.draw colours)
 
 
-def _shows_the_level(png: bytes) -> bool:
+def _shows_the_level(picture: bytes) -> bool:
     """Both of the level's bodies are in the picture (a few dozen pixels of each colour at least)."""
-    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+    pixels = np.asarray(Image.open(io.BytesIO(picture)).convert("RGB")).astype(int)
     return all((np.abs(pixels - colour).sum(axis=2) < 60).sum() >= 40 for colour in (BALL, BLOCK))
 
 
@@ -137,7 +137,7 @@ def test_watch_agent_never_shows_a_blank_canvas(browser, app):
         _wait(lambda: session.player == "agent:random" and session._steps > 0)
         page.wait_for_timeout(300)  # the agent's first frames reach the page
         pictures = screencast.stop()
-        blank = [n for n, png in enumerate(pictures) if not _shows_the_level(png)]
+        blank = [n for n, picture in enumerate(pictures) if not _shows_the_level(picture)]
         assert len(pictures) >= 3, "the screencast saw the gallery, the new page and the agent's play"
         assert not blank, f"{len(blank)} of {len(pictures)} pictures without the level: numbers {blank}"
         tab.assert_local_only()

@@ -123,6 +123,7 @@
   // square, as the world is). Only until the first frame is drawn.
   function drawPreview() {
     const image = document.getElementById("kinetix-preview");
+    if (image && !image.complete) image.addEventListener("load", drawPreview, { once: true }); // not decoded yet
     if (state.drawn > 0 || state.hidden || !image || !image.complete || !image.naturalWidth || !attach()) return;
     const width = Math.round(state.target.clientWidth);
     const height = Math.round(state.target.clientHeight);

@@ -117,10 +117,11 @@ def _shows_the_level(picture: bytes) -> bool:
 
 
 def test_watch_agent_never_shows_a_blank_canvas(browser, app):
-    """Every picture the browser paints, from the click on a gallery card's Watch agent until the agent plays, shows
-    the level (issue 37: the canvas stayed blank for about a second, then showed an empty level, before the level
-    appeared). The card's link asks for the random agent: the general one compiles for up to a minute first (the
-    canvas shows the level meanwhile), and which agent plays changes nothing the page shows before it does."""
+    """Every picture the browser paints, from a gallery card showing the level through the click on its Watch agent
+    until the agent plays, shows the level (issue 37: the canvas stayed blank for about a second, then showed an
+    empty level, before the level appeared). The card's link asks for the random agent: the general one compiles for
+    up to a minute first (the canvas shows the level meanwhile), and which agent plays changes nothing the page shows
+    before it does."""
     level_id, _ = app.store.create_level("E2E agent never blank", to_document(build(falling_win_spec())))
     tab = Tab(browser, app, 1280, 800)
     try:
@@ -128,9 +129,13 @@ def test_watch_agent_never_shows_a_blank_canvas(browser, app):
         page.goto(app.url + "gallery")
         card = page.locator("article.card", has_text="E2E agent never blank")
         card.wait_for(timeout=30_000)
+        # The card shows the level (its thumbnail) before the click: from then on every picture must.
+        thumbnail = card.locator("img")
+        _wait(lambda: thumbnail.evaluate("(img) => img.complete && img.naturalWidth > 0"), timeout=30)
         link = card.locator("a.watch")
         link.evaluate("(a) => { a.href += '&agent=random'; }")
         screencast = Screencast(page)
+        page.wait_for_timeout(200)  # the screencast's first picture: the gallery with the card
         link.click()
         wait_js(page, "window.__kinetixKeys && window.__kinetixKeys.ready()")
         session = app.manager.session_by_nonce(page.get_attribute("#kinetix-session", "data-nonce"))

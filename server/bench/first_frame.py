@@ -78,7 +78,7 @@ def _wait(predicate, timeout: float = 120.0) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
         if time.monotonic() > deadline:
-            raise TimeoutError("the agent did not start playing")
+            raise TimeoutError(f"still waiting after {timeout:.0f} s")
         time.sleep(0.02)
 
 
@@ -93,12 +93,15 @@ def _playing(session) -> bool:
 
 
 def by_link(app, context, level_id: str) -> dict:
+    """The gallery card's Watch agent (its link: `?level=<id>&mode=agent`; `level_id` names the card)."""
     page = context.new_page()
     try:
         page.goto(app.url + "gallery")
-        link = page.locator("article.card a.watch").first
-        link.wait_for(timeout=30_000)
-        link.evaluate(f"(a) => {{ a.href = './?level={level_id}&mode=agent'; }}")
+        card = page.locator(f"article.card:has(a.watch[href*='{level_id}'])")
+        card.wait_for(timeout=30_000)
+        thumbnail = card.locator("img")  # the card shows the level before the click
+        _wait(lambda: thumbnail.evaluate("(img) => img.complete && img.naturalWidth > 0"), timeout=30)
+        link = card.locator("a.watch")
         pictures = Pictures(page)
         page.wait_for_timeout(300)  # the screencast's first picture (the gallery) is in
         clicked = time.time()
@@ -117,6 +120,7 @@ def by_link(app, context, level_id: str) -> dict:
 
 
 def by_button(app, context, level_id: str) -> dict:
+    """The Agent folder's Watch agent in a tab that shows the level."""
     page = context.new_page()
     try:
         page.goto(app.url + f"?level={level_id}")

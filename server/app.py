@@ -110,7 +110,7 @@ class App:
         from server.web.http import MAX_BROWSER_MESSAGE, create_app
         from server.web.prefix import normalise
         from server.web.proxies import TrustedProxies
-        from server.web.relay import start_guarded_viser
+        from server.web.relay import page_query, start_guarded_viser
         from server.web.security import allowed_hosts_for
 
         if self.config.max_sessions < 1:
@@ -155,9 +155,11 @@ class App:
         self.viser.scene.configure_default_lights(enabled=False, cast_shadow=False)
         self.viser.scene.configure_environment_map(hdri=None)
         forget_background_clear(self.viser)
+        viser_server = self.viser
         self.manager = SessionManager(self.viser, max_sessions=self.config.max_sessions,
                                       editor_factory=self.config.editor_factory,
-                                      initial_level=self._initial_level(), warmup=self.warmup)
+                                      initial_level=self._initial_level(), warmup=self.warmup,
+                                      page_query=lambda client: page_query(viser_server, client.client_id))
         router = self._gallery_router()
         if self.recorder is None:
             self._start_recordings()

@@ -9,6 +9,13 @@
 // Here each frame is decoded off the main thread (createImageBitmap) and drawn with one drawImage; frames are shown
 // in order and a frame is dropped only when a newer one is already on screen. viser's canvas stays underneath
 // for pointer input (the overlay ignores the pointer), and every other message still goes to viser.
+//
+// Until the first frame arrives, the overlay shows the level the page's address names (?level=, ?draft=): the
+// server puts its picture in the page (<img id="kinetix-preview">, server/web/http.py), which shows it until
+// viser's canvas exists, and it is drawn on the canvas the moment it does. The first frame can only come after
+// viser's client has started, connected and had its session built, about a second later; the canvas was blank
+// until then (issue 37). And viser's websocket carries the page's query, so the session opens that level at once
+// (server/web/relay.py) instead of first showing a new level and waiting for keys.js to tell it the address.
 (function () {
   "use strict";
   const state = {
@@ -69,7 +76,10 @@
 
   // The overlay sits right after viser's canvas in the same parent, so viser's own overlays (the box-select
   // rectangle) that come later in the page stay on top of it.
-  const resizes = new ResizeObserver(place);
+  const resizes = new ResizeObserver(() => {
+    place();
+    if (state.drawn === 0) drawPreview(); // the canvas changed size (the panel docks): no stretched preview
+  });
   function attach() {
     if (state.overlay && state.overlay.isConnected && state.target && state.target.isConnected) return true;
     const target = viserCanvas();
@@ -103,10 +113,46 @@
     }
     state.context.drawImage(bitmap, 0, 0);
     bitmap.close();
+    if (state.drawn === 0) hidePreview();
     state.shown = seq;
     state.drawn += 1;
     for (const listener of state.listeners) listener(seq, acks);
   }
+
+  // The level's picture the page came with, letterboxed into the canvas as the server's frames are (the picture is
+  // square, as the world is). Only until the first frame is drawn.
+  function drawPreview() {
+    const image = document.getElementById("kinetix-preview");
+    if (image && !image.complete) image.addEventListener("load", drawPreview, { once: true }); // not decoded yet
+    if (state.drawn > 0 || state.hidden || !image || !image.complete || !image.naturalWidth || !attach()) return;
+    const width = Math.round(state.target.clientWidth);
+    const height = Math.round(state.target.clientHeight);
+    if (width < 1 || height < 1) return; // not laid out yet: the resize observer draws it then
+    const overlay = state.overlay;
+    overlay.width = width;
+    overlay.height = height;
+    const context = state.context;
+    context.fillStyle = image.dataset.letterbox || "#e2e4e8";
+    context.fillRect(0, 0, width, height);
+    const scale = Math.min(width / image.naturalWidth, height / image.naturalHeight);
+    const w = image.naturalWidth * scale;
+    const h = image.naturalHeight * scale;
+    context.drawImage(image, (width - w) / 2, (height - h) / 2, w, h);
+    hidePreview(); // it stood in for the canvas until now (server/web/http.py: with_preview)
+  }
+
+  function hidePreview() {
+    const image = document.getElementById("kinetix-preview");
+    if (image) image.style.display = "none";
+  }
+
+  // viser creates its canvas a few hundred milliseconds after the page starts (and could replace it): draw the
+  // preview on it in the same task, before the browser paints it blank. Watching ends with the first frame.
+  const canvases = new MutationObserver(() => {
+    if (state.drawn > 0) canvases.disconnect();
+    else if (!state.overlay || !state.overlay.isConnected || !state.target || !state.target.isConnected) drawPreview();
+  });
+  canvases.observe(document, { childList: true, subtree: true });
 
   function setHidden(hidden) {
     state.hidden = hidden;
@@ -155,11 +201,30 @@
     );
   }
 
+  // viser's websocket goes to the page's own address without its query; add it, so the session knows what the
+  // address names when it starts (server/web/relay.py passes it on). A reconnect (viser's "retry", after a server
+  // restart) names what the address shows by then: keys.js keeps it current (?draft=<id>, ?level=<id>).
+  function withQuery(server) {
+    return typeof server === "string" && server.indexOf("?") < 0 ? server + location.search : server;
+  }
+
   // viser receives its message batches from a Web Worker; listen on each worker first (before viser's own
   // handler, which is set after construction) and take the frames out of the batch.
   const ViserWorker = window.Worker;
   function Worker(url, options) {
     const worker = new ViserWorker(url, options);
+    const post = worker.postMessage.bind(worker);
+    let server = null; // the address viser gave, without the query
+    worker.postMessage = function (data, ...rest) {
+      if (data && data.type === "set_server") {
+        server = data.server;
+        return post({ ...data, server: withQuery(server) }, ...rest);
+      }
+      if (data && data.type === "retry" && server !== null) {
+        return post({ type: "set_server", server: withQuery(server) }); // what a retry does, with today's query
+      }
+      return post(data, ...rest);
+    };
     worker.addEventListener("message", (event) => {
       try {
         take(event.data);

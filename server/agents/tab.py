@@ -127,6 +127,7 @@ class AgentLink(TabTraining):
             action(*args)
         except Exception as error:
             log.info("agent action refused: %s", error)
+            session.show_status(None)  # "loading agent ..." on the canvas: nothing comes
             self._say(session, f"**Cannot do that:** {html.escape(str(error))}")
         finally:  # the tab may show another level by now (Open from gallery): offer its specialists
             try:
@@ -215,6 +216,9 @@ class AgentLink(TabTraining):
         label, spec = self.resolve(session, choice) if policy is None else (policy.name, policy.name)
         level_file = session.editor.level_file()
         self._say(session, f"Preparing **{html.escape(label)}** (the first time for a size class compiles it)...")
+        # On the canvas too, over the level it keeps showing: reading and compiling an agent can take a minute. The
+        # play it starts clears it (a refusal: _guarded).
+        session.show_status(f"loading agent {label}: the first time for a size class compiles it")
         runner = AgentRunner(spec, level_file.size, label=label.split(" (#")[0], policy=policy,
                              seed=secrets.randbits(31))
         runner.warm(stepper_for(level_file).start(level_file)[0])  # here, not on the play thread

@@ -58,9 +58,26 @@ class DraftLink(PlayListener):
         self._tabs: dict[object, TabDraft] = {}  # session -> its draft state; removed when the tab goes
 
     def attach(self, manager) -> None:
-        previous = manager.on_query
+        previous, previous_level = manager.on_query, manager.level_of_query
         manager.add_listener(self)
         manager.on_query = lambda session, query: self.open_from_query(session, query, previous)
+        manager.level_of_query = lambda query: self.level_of_query(query, previous_level)
+
+    def level_of_query(self, query: str, previous=None):
+        """The level `?draft=<id>` names (the page draws it before its session starts); else what `previous` (the
+        gallery's) finds; None if neither knows it."""
+        from kinetix.formats import build
+
+        draft_id = (parse_qs(query.lstrip("?")).get("draft") or [None])[0]
+        if draft_id is None:
+            return previous(query) if previous is not None else None
+        if not valid_id(draft_id):
+            return None
+        try:
+            draft = self.store.load(draft_id)
+        except DraftError:  # the tab says why once its session opens the address
+            return None
+        return None if draft is None else build(draft.spec, draft.size)
 
     def tab(self, session) -> TabDraft | None:
         with self._lock:

@@ -1,4 +1,5 @@
-"""Frames on the wire: the JPEG background a session pushes and the hidden acknowledgement of the key it answers."""
+"""Frames on the wire: the JPEG background a session pushes, the hidden acknowledgement of the key it answers, and the
+preview of a level that a page carries until its session's first frame arrives."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ from server.play import draw
 
 MAX_PIXELS = 1280 * 800  # larger canvases are rendered smaller at the same aspect ratio (the browser scales up)
 JPEG_QUALITY = 85
+# The preview is square, as the world is: the page letterboxes it into its canvas as frames are (static/frames.js).
+PREVIEW_PIXELS = 640
 
 
 def ack_html(seq: int) -> str:
@@ -45,3 +48,12 @@ def canvas_view(client) -> draw.View:
         f = (MAX_PIXELS / (w * h)) ** 0.5
         w, h = int(w * f), int(h * f)
     return draw.View(w, h)
+
+
+def preview_jpeg(level) -> bytes:
+    """The level as a tab's first frame shows it (without the HUD line, which names the tab's state), square, as JPEG:
+    server.web.http puts it in the page of an address that names the level (?level=, ?draft=), and static/frames.js
+    draws it on the canvas the moment viser's canvas exists, about a second before the session's first frame can
+    arrive (viser's client starts, connects, and the session is built first; issue 37: the canvas stayed blank)."""
+    view = draw.View(PREVIEW_PIXELS, PREVIEW_PIXELS)
+    return draw.encode_jpeg(draw.draw_frame(draw.scene_of(level), view), JPEG_QUALITY)

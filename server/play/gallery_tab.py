@@ -48,6 +48,7 @@ class GalleryLink:
         manager.on_session_gui = self.build_gui
         manager.on_query = self.open_from_query
         manager.on_play_end = self.record_play
+        manager.level_of_query = self.level_of_query
 
     # ------------------------------------------------------------------ GUI
 
@@ -140,6 +141,18 @@ class GalleryLink:
         level = self.store.get_level(level_id)
         session.open_level(json.dumps(level["level"]).encode(), f"{level_id}.json")
         session.gallery_id = level_id
+
+    def level_of_query(self, query: str):
+        """The LevelFile `?level=<id>` names (the page draws it before its session starts), None if none or unknown."""
+        from kinetix.levels import load_level
+
+        level_id = (parse_qs(query.lstrip("?")).get("level") or [None])[0]
+        if not level_id:
+            return None
+        try:
+            return load_level(self.store.get_level(level_id)["level"])
+        except StoreError:  # not in the gallery: the tab says so once its session opens the address
+            return None
 
     def open_from_query(self, session, query: str) -> None:
         """`?level=<id>[&mode=play]` from the page URL."""

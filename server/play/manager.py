@@ -9,6 +9,7 @@ import threading
 from collections.abc import Callable
 
 from server.play import draw
+from server.play.frames import preview_jpeg
 from server.play.hooks import PlayListener
 from server.play.scheduler import PlayScheduler
 from server.play.session import Session
@@ -21,7 +22,8 @@ class SessionManager:
     """All sessions of one server: created on viser connect, removed on disconnect, capped at `max_sessions`."""
 
     def __init__(self, server, *, max_sessions: int = 8, initial_level: Callable | None = None,
-                 editor_factory: Callable | None = None, warmup=None):
+                 editor_factory: Callable | None = None, warmup=None,
+                 page_query: Callable[[object], str | None] | None = None):
         self.server = server
         # The server's background compiles (server.play.warmup.WarmUp), or None: every play step compiles on use.
         self.warmup = warmup
@@ -38,7 +40,13 @@ class SessionManager:
         # Play frames are JPEG-encoded and sent here, in parallel with the play thread drawing the next one.
         self.encoder = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="kinetix-frames")
         self.max_sessions = max_sessions
-        self.initial_level = initial_level  # (client) -> LevelFile | None, e.g. from ?level= (gallery)
+        self.initial_level = initial_level  # (client) -> LevelFile | None (kinetix serve --level)
+        # (client) -> the query of the client's page ("?level=<id>&mode=agent"), or None when not known at connect
+        # (server.web.relay.page_query); then it comes with the /keys hello.
+        self.page_query = page_query
+        # (query) -> the level that address names (a gallery level, a draft), or None: drawn into the page itself
+        # (`preview`), set by the gallery and drafts integrations (chained: the first that knows it answers).
+        self.level_of_query: Callable[[str], object] | None = None
         self._lock = threading.Lock()
         self.sessions: dict[int, Session] = {}
         self.by_nonce: dict[str, Session] = {}
@@ -71,8 +79,13 @@ class SessionManager:
             self._reject(client)
             return
         session = None
+        query = self.page_query(client) if self.page_query is not None else None
         try:
             level = self.initial_level(client) if self.initial_level else None
+            # A page whose address names a level (?level=, ?draft=) starts with it, so its first frame (sent before
+            # the panel) shows that level, as the page does already (`preview`), not a new level until the address
+            # is opened; opening it over the untouched start adds no undo step (server.editor.Editor.import_bytes).
+            level = (self.level_named(query) if query else None) or level
             session = Session(client, self, level=level)
         except Exception:
             log.exception("could not start a session")
@@ -87,6 +100,46 @@ class SessionManager:
                     self.by_nonce[session.nonce] = session
             if session is not None and gone:
                 session.close()
+        if session is not None and not gone and query is not None:
+            try:
+                self.open_query(session, query)
+            except Exception:  # a bug in a hook must not leave the tab half-opened without a word in the log
+                log.exception("could not open %r in a new tab", query)
+
+    def open_query(self, session: Session, query: str) -> None:
+        """Open what the page's address names (on_query: `?level=<id>&mode=agent`, `?draft=<id>`), once per session:
+        at connect when the relay passed the query on, else with the /keys hello, which also comes again after a
+        network blip and must not reopen the level under the player. A second call waits for the first to finish
+        (the /keys socket says "ready" only then, so keys pressed meanwhile act on the opened level)."""
+        with session.query_lock:
+            if session.query_opened:
+                return
+            session.query_opened = True
+            if self.on_query is not None:
+                self.on_query(session, query)
+
+    def preview(self, query: str) -> bytes | None:
+        """A JPEG of the level the address `query` names, drawn as a tab's first frame would be, for the page itself
+        to show until its session's first frame arrives (server.web.http); None if it names none or cannot be drawn."""
+        level_file = self.level_named(query)
+        if level_file is None:
+            return None
+        try:
+            return preview_jpeg(level_file.level)
+        except Exception:  # the page must come anyway; its session draws (or refuses) the level itself
+            log.exception("could not draw the preview of %r", query)
+            return None
+
+    def level_named(self, query: str):
+        """The LevelFile the address `query` names (level_of_query), None if none; never raises: a level that no longer
+        builds or a database hiccup only means the tab starts without it (opening the address then says why)."""
+        if self.level_of_query is None or not query:
+            return None
+        try:
+            return self.level_of_query(query)
+        except Exception:
+            log.warning("cannot find the level of %r", query, exc_info=True)
+            return None
 
     def _reject(self, client) -> None:
         text = (f"**The server is full**: it allows {self.max_sessions} open tabs at a time. "

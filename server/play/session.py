@@ -87,6 +87,7 @@ class Session(PlayLoop):
         self._pending_push = None  # the Future of this session's frame being encoded and sent, if any
         self._next_tick: float | None = None
         self._message: str | None = None
+        self._status: str | None = None  # what the tab waits for (show_status)
         self._waiting_play: tuple | None = None  # (controller, wait) of a play asked for before its step compiled
         self._pushed_key = None  # what the last edit-mode frame showed, to push only on change
         self.pointer_log: collections.deque[str] = collections.deque(maxlen=50)  # recent editor calls (debugging)
@@ -99,6 +100,8 @@ class Session(PlayLoop):
         self.controller: Controller | None = None  # set by play(controller=...): the agent playing, or None
         self.replay = None  # a server.recordings.replay.Replay while the tab shows a recording (mode "replay")
         self.ended_player = "human"  # the player of the last play that ended (see finish_step)
+        self.query_lock = threading.Lock()  # held while the page's address is opened (SessionManager.open_query)
+        self.query_opened = False
 
         # The level first, then the panel: the page draws this frame before viser builds the panel, which keeps
         # the browser's main thread busy for a second or more (the canvas stayed blank that long, issue 37).
@@ -271,7 +274,7 @@ class Session(PlayLoop):
 
             self._play = (stepper, state, params)
             self.clockwise = clockwise_values(level_file.level)
-            self._steps, self._result, self._message = 0, None, None
+            self._steps, self._result, self._message, self._status = 0, None, None, None
             self._step_request = False
             self.controller = controller
             self.mode = "ready" if wait else "play"
@@ -370,6 +373,15 @@ class Session(PlayLoop):
                 self._step_request = True
                 self.manager.scheduler.wake()
 
+    def show_status(self, text: str | None) -> None:
+        """Say on the canvas what the tab waits for ("loading agent general ..."), over the level it shows while
+        editing (a message of the tab's own, such as a refusal, goes first); None clears it, and so does a play
+        that starts."""
+        with self.lock:
+            if text != self._status:
+                self._status = text
+                self.refresh()
+
     def set_buttons(self) -> None:
         """The Play folder's buttons follow the mode (server.play.buttons)."""
         self.buttons.update(self.mode)
@@ -399,7 +411,7 @@ class Session(PlayLoop):
                 self.editor.snap_radius = SNAP_PIXELS / self._view.scale  # the same few pixels at any canvas size
             level = self.editor.level_file().level
             overlay = self.editor.overlay()
-            message = getattr(overlay, "message", None) or self._message
+            message = getattr(overlay, "message", None) or self._message or self._status
             return draw.draw_frame(draw.scene_of(level), self._view, overlay=overlay, hud=self.hud(), message=message)
         stepper, state, params = self._play
         banner = START_HINT if self.mode == "ready" else ""
@@ -421,7 +433,7 @@ class Session(PlayLoop):
         with self.lock:
             if self.closed or self.mode not in ("edit", "ready"):  # a waiting play is redrawn like an edit
                 return
-            key = (getattr(self.editor, "revision", None), self.canvas(), self._message, self.mode,
+            key = (getattr(self.editor, "revision", None), self.canvas(), self._message, self._status, self.mode,
                    self.manager.preparing())
             if not force and key == self._pushed_key:
                 return

@@ -5,7 +5,8 @@ a background thread, see server.app) is the one URL the user opens, and the only
 the outside world (viser itself listens on an ephemeral port of 127.0.0.1):
 
     GET /            viser's client/build/index.html with frames.js and keys.js injected (relative paths, so the
-                     page also works under a reverse proxy or TLS)
+                     page also works under a reverse proxy or TLS); for an address that names a level
+                     (?level=<id>, ?draft=<id>) also that level's picture, which frames.js shows at once
     WS  /            viser's websocket, relayed to viser's internal port (viser's client connects to the page's own
                      URL when the page has no ?websocket= parameter; keys.js removes a stale one)
     GET /static/...  files of static/
@@ -17,17 +18,18 @@ the outside world (viser itself listens on an ephemeral port of 127.0.0.1):
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import logging
 import re
-import weakref
 from collections.abc import Callable
 from pathlib import Path
 
-from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, PlainTextResponse
 from fastapi.staticfiles import StaticFiles
 
+from kinetix.draw import LETTERBOX
 from server.web.prefix import UnderPath, normalise
 from server.web.proxies import TrustedProxies
 from server.web.relay import relay_to_viser
@@ -63,6 +65,22 @@ def inject(page: str) -> str:
     return page[: head + 6] + snippet + page[head + 6:]
 
 
+def with_preview(page: str, jpeg: bytes, letterbox: tuple[int, int, int]) -> str:
+    """The page with a level's picture as its body's first element, filling the window as viser's canvas will at
+    first (letterboxed in `letterbox`, as the server's frames are), so the page's very first paint shows the level;
+    static/frames.js draws it on the canvas once viser's canvas exists and hides this. Inline, so it is there before
+    anything is painted, without a request of its own."""
+    body = page.find("<body>")
+    if body < 0:
+        return page  # the page still works without it
+    colour = "#" + "".join(f"{channel:02x}" for channel in letterbox)
+    # Under everything viser draws (z-index -1): it shows only until viser's canvas covers it.
+    style = f"position:fixed;inset:0;z-index:-1;width:100%;height:100%;object-fit:contain;background:{colour}"
+    image = (f'<img id="kinetix-preview" alt="" decoding="sync" data-letterbox="{colour}" style="{style}" '
+             f'src="data:image/jpeg;base64,{base64.b64encode(jpeg).decode()}">')
+    return page[: body + 6] + image + page[body + 6:]
+
+
 def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
                gallery_router: APIRouter | None = None,
                gallery_handlers: Callable[[FastAPI], None] | None = None, allowed_hosts=LOCAL_HOSTS,
@@ -77,9 +95,13 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
     page = inject(viser_index_html())
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
-    def index() -> HTMLResponse:
+    def index(request: Request) -> HTMLResponse:
+        # The level the address names, drawn into the page: shown before viser's client has started (issue 37).
+        preview = getattr(manager, "preview", None)
+        jpeg = preview(request.url.query) if preview is not None else None
+        shown = page if jpeg is None else with_preview(page, jpeg, LETTERBOX)
         # viser's client needs a policy of its own (server.web.security); the middleware keeps a header already set.
-        return HTMLResponse(page, headers={"Cache-Control": "no-store",
+        return HTMLResponse(shown, headers={"Cache-Control": "no-store",
                                            "Content-Security-Policy": VISER_PAGE_CONTENT_SECURITY_POLICY})
 
     @app.websocket("/")
@@ -101,8 +123,6 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
         app.include_router(gallery_router, prefix="/api")
         if gallery_handlers is not None:  # the gallery's own error shape (server.gallery.models.problem_handlers):
             gallery_handlers(app)  # passed in, so server.web never imports server.gallery
-
-    opened: weakref.WeakSet = weakref.WeakSet()  # sessions whose page query was handled (the first hello)
 
     @app.websocket("/keys")
     async def keys(socket: WebSocket) -> None:
@@ -127,13 +147,12 @@ def create_app(manager, viser_port: int, *, static_dir: Path = STATIC_DIR,
             if isinstance(hello.get("tab"), str) and TAB_KEY.fullmatch(hello["tab"]):
                 session.tab_key = hello["tab"]  # the tab's key in sessionStorage (its last play is kept under it)
             query = hello.get("query")
-            if isinstance(query, str) and manager.on_query is not None and session not in opened:
-                # e.g. /?level=<gallery id>&mode=play, ?draft=<id>, or "" (a new tab gets a draft id): the page's
-                # query reaches Python only through this socket. Once per session: keys.js opens /keys again after
-                # a network blip, and that must not reopen the level under the player. Before "ready", so keys
-                # pressed meanwhile (keys.js queues them) act on the opened level, not on the placeholder.
-                opened.add(session)
-                await asyncio.get_running_loop().run_in_executor(None, manager.on_query, session, query)
+            if isinstance(query, str):
+                # e.g. /?level=<gallery id>&mode=play, ?draft=<id>, or "" (a new tab gets a draft id), unless the
+                # session opened it at connect already (the relay passed the query on; the manager opens it once).
+                # Before "ready", so keys pressed meanwhile (keys.js queues them) act on the opened level, not on
+                # the placeholder.
+                await asyncio.get_running_loop().run_in_executor(None, manager.open_query, session, query)
             await socket.send_text(json.dumps({"type": "ready"}))
             while True:
                 event = await _receive(socket)

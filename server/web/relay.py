@@ -10,6 +10,12 @@ starts `websockets.asyncio.server.serve` is wrapped to add a `process_request` c
 (which serves its client files): every request, websocket or plain HTTP, must carry the header TOKEN_HEADER with a
 random token only this process knows, else it gets 403 before viser sees it. The relay sends it. (A unix socket
 would need viser to listen on one, which it cannot.)
+
+The page's query (`?level=<id>&mode=agent`, `?draft=<id>`) travels with viser's websocket (static/frames.js adds it to
+the URL viser's client connects to) and the relay passes it on to viser's internal URL, where `page_query` finds it
+for the new client: so a tab's session knows what its address names the moment it starts, instead of a second or
+more later over /keys, after the browser has built viser's panel (issue 37: the tab showed nothing, then an empty
+level, before the level of a Watch agent link).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import hmac
 import http
 import io
 import logging
+import re
 import secrets
 import threading
 
@@ -32,6 +39,9 @@ log = logging.getLogger(__name__)
 VISER_HOST = "127.0.0.1"  # viser listens here only; browsers reach it through the relay below
 TOKEN_HEADER = "X-Kinetix-Relay"
 UNSENDABLE_CLOSE_CODES = (1005, 1006, 1015)  # reported by a websocket library, never sent in a close frame
+MAX_QUERY = 2048  # characters of the page's query passed on to viser (an address is far shorter; longer ones go)
+# What a query may hold as it is passed on (it is percent-encoded already; anything else is dropped, not repaired).
+QUERY_CHARACTERS = re.compile(r"[A-Za-z0-9._~%!$&'()*+,;=:@/?-]*")
 _serve_lock = threading.Lock()  # one guarded start at a time (the wrapper is installed process-wide meanwhile)
 
 
@@ -67,8 +77,12 @@ async def relay_to_viser(socket: WebSocket, viser_port: int, token: str | None =
     viser's own version check still works. No compression on the loopback leg: viser's windows are zstd and JPEG.
     """
     offered = [p.strip() for p in socket.headers.get("sec-websocket-protocol", "").split(",") if p.strip()]
+    query = socket.url.query
+    if len(query) > MAX_QUERY or not QUERY_CHARACTERS.fullmatch(query):
+        query = ""
     try:
-        upstream = await websockets.connect(f"ws://{VISER_HOST}:{viser_port}", subprotocols=offered or None,
+        upstream = await websockets.connect(f"ws://{VISER_HOST}:{viser_port}/" + (f"?{query}" if query else ""),
+                                            subprotocols=offered or None,
                                             compression=None, max_size=None, ping_interval=None, open_timeout=10,
                                             additional_headers={TOKEN_HEADER: token} if token else None)
     except (OSError, TimeoutError, websockets.InvalidHandshake) as error:
@@ -110,3 +124,14 @@ async def relay_to_viser(socket: WebSocket, viser_port: int, token: str | None =
             await socket.close(code=code, reason=upstream.close_reason or "")
 
 
+def page_query(server, client_id: int) -> str | None:
+    """The query of the page whose websocket became viser client `client_id` ("?level=...&mode=agent"), as the relay
+    passed it on; None when it named none (a bare address, an older page, a client that came straight to viser's
+    port). viser 1.1.1 keeps each client's websocket connection, and with it the request, in its websocket server;
+    it has no public call for it, so if its internals differ this finds nothing (the query then comes over /keys)."""
+    try:
+        path = server._websock_server._live_connections[client_id].request.path
+    except (AttributeError, KeyError, TypeError):
+        return None
+    _, mark, query = path.partition("?")
+    return f"?{query}" if mark and query else None

@@ -184,3 +184,26 @@ class Tab:
 
     def close(self) -> None:
         self.context.close()
+
+
+class Screencast:
+    """What Chromium painted for a page, picture by picture (the DevTools screencast), across navigations: a test
+    can check every picture the user saw, not just the state at the moments it looked."""
+
+    def __init__(self, page, width: int = 640, height: int = 400):
+        """Pictures at most `width` x `height` (JPEG): smaller than the page, so they are quick to look at."""
+        self.pictures: list[bytes] = []
+        self._cdp = page.context.new_cdp_session(page)
+        self._cdp.on("Page.screencastFrame", self._take)
+        self._cdp.send("Page.startScreencast", {"format": "jpeg", "quality": 90, "maxWidth": width,
+                                                "maxHeight": height, "everyNthFrame": 1})
+
+    def _take(self, event) -> None:
+        import base64
+
+        self.pictures.append(base64.b64decode(event["data"]))
+        self._cdp.send("Page.screencastFrameAck", {"sessionId": event["sessionId"]})
+
+    def stop(self) -> list[bytes]:
+        self._cdp.send("Page.stopScreencast")
+        return self.pictures

@@ -12,7 +12,7 @@ from PIL import Image
 
 from kinetix.formats import build
 from kinetix.levels import to_document
-from tests.e2e.conftest import Tab, canvas_box, wait_js
+from tests.e2e.conftest import Screencast, Tab, canvas_box, wait_js
 from tests.server.conftest import running_app, wait_until
 from tests.server.fake_editor import falling_win_spec
 
@@ -102,6 +102,49 @@ def test_watch_agent_shows_the_level_before_the_panel(browser, app):
         session = app.manager.session_by_nonce(page.get_attribute("#kinetix-session", "data-nonce"))
         _wait(lambda: session.gallery_id == level_id and session.player.startswith("agent"))
         page.close()
+        tab.assert_local_only()
+    finally:
+        tab.close()
+
+
+BALL, BLOCK = (0, 204, 0), (0, 51, 102)  # falling_win_spec's green ball and fixed blue block (kinetix.draw colours)
+
+
+def _shows_the_level(picture: bytes) -> bool:
+    """Both of the level's bodies are in the picture (a few dozen pixels of each colour at least)."""
+    pixels = np.asarray(Image.open(io.BytesIO(picture)).convert("RGB")).astype(int)
+    return all((np.abs(pixels - colour).sum(axis=2) < 60).sum() >= 40 for colour in (BALL, BLOCK))
+
+
+def test_watch_agent_never_shows_a_blank_canvas(browser, app):
+    """Every picture the browser paints, from a gallery card showing the level through the click on its Watch agent
+    until the agent plays, shows the level (issue 37: the canvas stayed blank for about a second, then showed an
+    empty level, before the level appeared). The card's link asks for the random agent: the general one compiles for
+    up to a minute first (the canvas shows the level meanwhile), and which agent plays changes nothing the page shows
+    before it does."""
+    level_id, _ = app.store.create_level("E2E agent never blank", to_document(build(falling_win_spec())))
+    tab = Tab(browser, app, 1280, 800)
+    try:
+        page = tab.context.new_page()
+        page.goto(app.url + "gallery")
+        card = page.locator("article.card", has_text="E2E agent never blank")
+        card.wait_for(timeout=30_000)
+        # The card shows the level (its thumbnail) before the click: from then on every picture must.
+        thumbnail = card.locator("img")
+        _wait(lambda: thumbnail.evaluate("(img) => img.complete && img.naturalWidth > 0"), timeout=30)
+        link = card.locator("a.watch")
+        link.evaluate("(a) => { a.href += '&agent=random'; }")
+        screencast = Screencast(page)
+        page.wait_for_timeout(200)  # the screencast's first picture: the gallery with the card
+        link.click()
+        wait_js(page, "window.__kinetixKeys && window.__kinetixKeys.ready()")
+        session = app.manager.session_by_nonce(page.get_attribute("#kinetix-session", "data-nonce"))
+        _wait(lambda: session.player == "agent:random" and session._steps > 0)
+        page.wait_for_timeout(300)  # the agent's first frames reach the page
+        pictures = screencast.stop()
+        blank = [n for n, picture in enumerate(pictures) if not _shows_the_level(picture)]
+        assert len(pictures) >= 3, "the screencast saw the gallery, the new page and the agent's play"
+        assert not blank, f"{len(blank)} of {len(pictures)} pictures without the level: numbers {blank}"
         tab.assert_local_only()
     finally:
         tab.close()

@@ -4,8 +4,10 @@ progress, cancel, attach), and one slow real training that attaches a specialist
 
 from __future__ import annotations
 
+import io
 import json
 import re
+import threading
 import time
 
 import jax.numpy as jnp
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 from fake_editor import falling_win_spec
 from fake_training import fake_train_worker
+from PIL import Image
 from viser_client import KeysSocket
 
 from kinetix.agents.policy import Policy
@@ -227,6 +230,54 @@ def test_cancel_training_from_the_tab(app, make_client, tmp_path):
     assert job.settled.wait(60)
     assert job.state == "cancelled" and not job.out_dir.exists()
     _wait(lambda: "Training cancelled." in _status(client))
+
+
+def test_while_the_agent_loads_the_canvas_shows_the_level_and_says_so(app, make_client, monkeypatch):
+    """Reading and compiling an agent can take a minute: the tab keeps drawing its level, with "loading agent ..." on
+    it (issue 37), until the play starts; a load that fails takes the words away again."""
+    loading, release = threading.Event(), threading.Event()
+    warm = AgentRunner.warm
+
+    def slow_warm(runner, state):
+        loading.set()
+        assert release.wait(60)
+        if runner.label == "noop":
+            raise RuntimeError("this agent does not load")
+        warm(runner, state)
+
+    monkeypatch.setattr(AgentRunner, "warm", slow_warm)
+    client = make_client(app)
+    session, _ = _session(app, client)
+    session.open_level(json.dumps(to_document(build(falling_win_spec()))).encode(), "fall.json")
+    start = client.count()
+    worker = threading.Thread(target=app.agents.watch, args=(session, "random"), daemon=True)
+    worker.start()
+    assert loading.wait(30)
+    assert session.mode == "edit" and (session._status or "").startswith("loading agent random")
+
+    def words_over_the_level(jpeg: bytes) -> bool:
+        rgb = np.asarray(Image.open(io.BytesIO(jpeg))).astype(int)
+        ink = (rgb[..., 0] - rgb[..., 1:].max(axis=2) > 60) & (rgb[..., 0] < 235)  # the message's dark red, blended
+        ball = np.abs(rgb - (0, 204, 0)).sum(axis=2) < 60
+        return ink.sum() > 50 and ball.sum() > 100
+
+    _wait(lambda: any(words_over_the_level(jpeg) for jpeg in client.frames(start)), timeout=30)
+    release.set()
+    worker.join(60)
+    _wait(lambda: session.player == "agent:random")
+    assert session._status is None
+    session.stop()
+
+    release.clear()
+    loading.clear()
+    failing = threading.Thread(target=app.agents._guarded, args=(session, app.agents.watch, session, "noop"),
+                               daemon=True)
+    failing.start()
+    assert loading.wait(30) and session._status.startswith("loading agent noop")
+    release.set()
+    failing.join(60)
+    assert session._status is None and session.mode == "edit"
+    _wait(lambda: "this agent does not load" in _status(client))
 
 
 def test_watch_refuses_a_missing_specialist_with_a_message(app, make_client):

@@ -25,6 +25,7 @@ import shlex
 import signal
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -165,6 +166,10 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
             raise CheckpointError(f"the run in {out} has trained {history[-1]['env_steps']:.0f} steps already; "
                                   f"--steps {steps} would end before that (give at least that many to extend it)")
         runner = resume_module.restore(runner, arrays)
+        if resume_module.is_compact(arrays):  # fresh environments: their levels are no buffer slot's (-2)
+            runner = dataclasses.replace(runner, env_level_ids=runner.env_level_ids * 0 - 2)
+            warnings.warn(f"{out}: a compact training state; every environment restarts on a fresh level",
+                          stacklevel=2)
     start = time.perf_counter()
     arguments = {"level": level if level in RANDOM_LEVELS else str(Path(level).resolve()), "steps": steps,
                  "curriculum": curriculum, "init": init, "seed": seed, "observation": observation, "action": action,

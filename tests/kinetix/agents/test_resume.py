@@ -252,3 +252,24 @@ def test_sfl_trains_on_random_all_levels(tmp_path):
     assert summary["complete"] and len(summary["metrics"]) == 2
     meta, _, _ = resume.load_latest(tmp_path)
     assert meta["arguments"]["level"] == "random-all"
+
+
+def test_a_compact_state_continues_the_run_with_fresh_environments(reference, tmp_path, capsys):
+    """`python -m kinetix.agents.resume compact DIR` keeps the learning (parameters, Adam, PLR buffer, key, update
+    index) and drops the environments; the run resumes from it, longer, with every environment on a fresh level."""
+    out = tmp_path / "run"
+    shutil.copytree(reference, out)
+    _, full, _ = resume.load_latest(out)
+    assert resume.main(["compact", str(out)]) == 0
+    meta, arrays, path = resume.load_latest(out)
+    assert [p.name for p in resume.state_dir(out).iterdir()] == [path.name] and meta["compact"]
+    assert resume.is_compact(arrays) and not resume.is_compact(full)
+    assert not any(p.startswith(".env_state") for p in arrays) and len(arrays) < len(full)
+    for name, array in arrays.items():  # what is kept is kept exactly
+        np.testing.assert_array_equal(array, full[name])
+    with pytest.warns(UserWarning, match="compact training state"):
+        summary = train_agent("random-s", out, **dict(RUN, steps=2 * STEPS), resume=True)
+    assert summary["complete"] and len(summary["metrics"]) == 16 and summary["resumed_at_update"] == 8
+    assert np.isfinite([m["mean_return"] for m in summary["metrics"][8:]]).all()
+    assert resume.main(["compact", str(tmp_path / "nothing")]) == 2
+    assert "no training state" in capsys.readouterr().err

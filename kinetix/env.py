@@ -48,7 +48,7 @@ from kinetix import actions as actions_module
 from kinetix import observations
 from kinetix.actions import Box, DictSpace, Space
 from kinetix.goal import goal_distance, touch_outcome
-from kinetix.level import Level, LevelError, LevelFile, LevelParams, SizeClass, size_class
+from kinetix.level import Level, LevelError, LevelFile, LevelParams, SizeClass, empty_level, size_class
 
 ResetFn = Callable[[jax.Array], Level]
 
@@ -152,7 +152,6 @@ class KinetixEnv:
         c = self.config
         if c.observation == "pixels":
             return Box(0.0, 1.0, (c.pixel_resolution, c.pixel_resolution, 3))
-        from kinetix.level import empty_level
 
         level = empty_level(c.size)
         shapes = jax.eval_shape(lambda lv: observations.observe(lv, c.observation), level)
@@ -289,7 +288,7 @@ class KinetixEnv:
 def make_env(config: EnvConfig, reset_fn: ResetFn | Level | LevelFile) -> KinetixEnv:
     """The environment for `config`; `reset_fn(key) -> Level` (see kinetix.reset_fns), or one level to always reset to.
 
-    Checks once, by shape only, that the reset function gives levels of the config's size class.
+    Checks once, by shape and dtype, that the reset function gives levels of the config's size class.
     """
     if isinstance(reset_fn, Level | LevelFile):
         from kinetix.reset_fns import reset_single
@@ -305,4 +304,12 @@ def make_env(config: EnvConfig, reset_fn: ResetFn | Level | LevelFile) -> Kineti
     if level.capacity != config.size.capacity:
         raise LevelError(f"reset_fn gives levels of capacity {level.capacity}, but the config's size "
                          f"{config.size.name} has {config.size.capacity}; use kinetix.levels.resize")
+    # Dtypes matter as much as shapes: an int32 `active` still selects, but ~active is no longer a mask.
+    with jax.ensure_compile_time_eval():  # concrete even when make_env is called inside a trace
+        want = empty_level(config.size)
+    wrong = [f"{jax.tree_util.keystr(path)} is {got.dtype}, not {expected.dtype}" for (path, got), expected
+             in zip(jax.tree_util.tree_flatten_with_path(level)[0], jax.tree.leaves(want), strict=True)
+             if got.dtype != expected.dtype]
+    if wrong:
+        raise LevelError(f"reset_fn gives levels with the wrong dtypes: {'; '.join(wrong[:3])}")
     return KinetixEnv(config, reset_fn)

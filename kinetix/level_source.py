@@ -137,6 +137,8 @@ def mixed_generator(sizes: tuple[str, ...]) -> Callable[[jax.Array], Level]:
         k_size, k_level = jax.random.split(key)
         which = jax.random.randint(k_size, (), 0, len(classes))
         levels = [pad_level(sample_level(k_level, c), classes[-1]) for c in classes]
-        return jax.tree.map(lambda *xs: jnp.select([which == i for i in range(len(xs))], xs), *levels)
+        # select_n keeps each leaf's dtype (jnp.select would promote the boolean masks to int32, and ~active of
+        # an int is not a mask: the physics of such a level is wrong)
+        return jax.tree.map(lambda *xs: jax.lax.select_n(which, *xs), *levels)
 
     return generator

@@ -60,8 +60,24 @@ def test_padding_only_grows():
 def test_random_all_mixes_the_three_size_classes():
     source = level_source("random-all")
     assert source.random and source.size == L
+    # Every leaf keeps the dtype of an l level (a select that promoted the boolean masks to int32 once made
+    # ~active a non-mask, and the physics of every level wrong).
+    got, want = jax.eval_shape(source.generator, jax.random.key(0)), jax.eval_shape(lambda: sample_level(
+        jax.random.key(0), "l"))
+    assert [x.dtype for x in jax.tree.leaves(got)] == [x.dtype for x in jax.tree.leaves(want)]
     levels = jax2d.jit(jax.vmap(mixed_generator(("s", "m", "l"))))(jax.random.split(jax.random.key(1), 96))
     assert levels.capacity == L.capacity
     polygons = np.asarray(levels.sim.bodies.active[:, :L.polygons]).sum(axis=1)
     # s levels have at most 5 polygons (walls included), m levels 6; l levels use slots neither has.
     assert (polygons <= S.polygons).sum() >= 10 and (polygons > SIZES["m"].polygons).sum() >= 10, polygons
+
+
+def test_an_environment_refuses_levels_of_the_wrong_dtypes():
+    import jax.numpy as jnp
+
+    from kinetix.level import LevelError
+
+    level = sample_level(jax.random.key(0), "s")
+    wrong = jax.tree.map(lambda x: x.astype(jnp.int32) if x.dtype == bool else x, level)
+    with pytest.raises(LevelError, match=r"wrong dtypes: \.sim\.bodies\.active is int32, not bool"):
+        make_env(EnvConfig("s"), lambda key: wrong)

@@ -261,6 +261,8 @@ def test_a_compact_state_continues_the_run_with_fresh_environments(reference, tm
     shutil.copytree(reference, out)
     _, full, _ = resume.load_latest(out)
     assert resume.main(["compact", str(out)]) == 0
+    shutil.rmtree(out / "checkpoint")  # what gets committed: the compact state (and metrics), nothing else needed
+    (out / "curve.png").unlink()
     meta, arrays, path = resume.load_latest(out)
     assert [p.name for p in resume.state_dir(out).iterdir()] == [path.name] and meta["compact"]
     assert resume.is_compact(arrays) and not resume.is_compact(full)
@@ -270,6 +272,7 @@ def test_a_compact_state_continues_the_run_with_fresh_environments(reference, tm
     with pytest.warns(UserWarning, match="compact training state"):
         summary = train_agent("random-s", out, **dict(RUN, steps=2 * STEPS), resume=True)
     assert summary["complete"] and len(summary["metrics"]) == 16 and summary["resumed_at_update"] == 8
+    assert (out / "checkpoint" / "params.msgpack").is_file() and (out / "curve.png").is_file()
     assert np.isfinite([m["mean_return"] for m in summary["metrics"][8:]]).all()
     assert resume.main(["compact", str(tmp_path / "nothing")]) == 2
     assert "no training state" in capsys.readouterr().err

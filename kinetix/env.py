@@ -43,12 +43,12 @@ import jax.numpy as jnp
 
 import jax2d
 from jax2d.compact import Compact, layout_of, pack, unpack, update
-from jax2d.state import SimParams, SolverConfig
+from jax2d.state import SimParams, SolverConfig, empty_state
 from kinetix import actions as actions_module
 from kinetix import observations
 from kinetix.actions import Box, DictSpace, Space
 from kinetix.goal import goal_distance, touch_outcome
-from kinetix.level import Level, LevelError, LevelFile, LevelParams, SizeClass, empty_level, size_class
+from kinetix.level import Level, LevelError, LevelFile, LevelParams, SizeClass, empty_level, make_level, size_class
 
 ResetFn = Callable[[jax.Array], Level]
 
@@ -306,7 +306,7 @@ def make_env(config: EnvConfig, reset_fn: ResetFn | Level | LevelFile) -> Kineti
                          f"{config.size.name} has {config.size.capacity}; use kinetix.levels.resize")
     # Dtypes matter as much as shapes: an int32 `active` still selects, but ~active is no longer a mask.
     with jax.ensure_compile_time_eval():  # concrete even when make_env is called inside a trace
-        want = empty_level(config.size)
+        want = make_level(empty_state(config.size.capacity))  # no walls: any custom size class has these dtypes
     wrong = [f"{jax.tree_util.keystr(path)} is {got.dtype}, not {expected.dtype}" for (path, got), expected
              in zip(jax.tree_util.tree_flatten_with_path(level)[0], jax.tree.leaves(want), strict=True)
              if got.dtype != expected.dtype]

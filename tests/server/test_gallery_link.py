@@ -131,9 +131,8 @@ def test_the_gallery_page_and_api_are_served_beside_the_editor(app):
     assert set(listing) == {"items", "next"}
 
 
-def test_a_tab_keeps_one_identity_for_its_plays_saves_and_votes(app, make_client):
-    """Issue 34: a tab without a token gets one identity at its first gallery play, hands it to the page, and
-    uses it for every later save; that identity may vote on the level it played, a fresh one may not."""
+def _ready_to_play_without_identity(app, make_client):
+    """A new gallery level opened by link for play in a fresh tab that has no identity yet, waiting for a key."""
     level_id, _ = app.store.create_level("falling win", _falling_win_document())
     client = make_client(app)
     session, nonce = _session(app, client)
@@ -141,6 +140,17 @@ def test_a_tab_keeps_one_identity_for_its_plays_saves_and_votes(app, make_client
     try:
         _wait(lambda: session.mode == "ready")
         assert session.author_token is None
+    except BaseException:
+        keys.close()
+        raise
+    return level_id, client, session, keys
+
+
+def test_a_tab_keeps_one_identity_for_its_plays_saves_and_votes(app, make_client):
+    """Issue 34: a tab without a token gets one identity at its first gallery play, hands it to the page, and
+    uses it for every later save; that identity may vote on the level it played, a fresh one may not."""
+    level_id, client, session, keys = _ready_to_play_without_identity(app, make_client)
+    try:
         keys.down("Space")
         _wait(lambda: app.store.stats(level_id)["human_plays"] == 1)
         token = session.author_token
@@ -162,13 +172,8 @@ def test_a_tab_keeps_one_identity_for_its_plays_saves_and_votes(app, make_client
 def test_a_play_cut_short_by_closing_the_tab_is_recorded_without_an_error(app, make_client):
     """A tab closed mid-play ends the play after its client is gone: the play still counts (under a new identity,
     since the tab had none) and handing that identity to a page that no longer exists is skipped, not a crash."""
-    level_id, _ = app.store.create_level("falling win", _falling_win_document())
-    client = make_client(app)
-    session, nonce = _session(app, client)
-    keys = KeysSocket(app.port, nonce, query=f"?level={level_id}&mode=play")
+    level_id, client, session, keys = _ready_to_play_without_identity(app, make_client)
     try:
-        _wait(lambda: session.mode == "ready")
-        assert session.author_token is None
         session.close()
         assert session.client is None
         GalleryLink(app.store).record_play(session, "stopped", 3, 0.1)

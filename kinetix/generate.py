@@ -27,7 +27,6 @@ dynamic body, and `is_valid` holds (see kinetix.mutate for the mutators that kee
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -47,9 +46,9 @@ from kinetix.level import (
     ROLE_RED,
     Level,
     SizeClass,
-    empty_level,
     size_class,
 )
+from kinetix.padding import constant_empty_level
 from kinetix.placement import (
     DEFAULT_PARAMS,
     THRUSTER_DRAWS,
@@ -97,12 +96,6 @@ def valid_masks(roles, active, fixed, groups, joint_active, joint_a, joint_b, mo
 # ---------------------------------------------------------------- the generator
 
 
-@functools.cache
-def _empty(size: SizeClass) -> Level:
-    with jax.ensure_compile_time_eval():  # concrete constants even when first called inside a trace
-        return empty_level(size)
-
-
 def sample_level(key: jax.Array, size: SizeClass | str, params: GeneratorParams = DEFAULT_PARAMS) -> Level:
     """A random level of this size class; pure JAX, the same key always gives the same level.
 
@@ -110,7 +103,7 @@ def sample_level(key: jax.Array, size: SizeClass | str, params: GeneratorParams 
     thruster slot or (for a motor) a joint slot and three free bodies.
     """
     size = size_class(size)
-    level = _empty(size)
+    level = constant_empty_level(size)
     level = dataclasses.replace(level, sim=dataclasses.replace(
         level.sim, gravity=jnp.asarray([0.0, params.gravity], jnp.float32)))
     P, C, J, T = size.polygons, size.circles, size.joints, size.thrusters

@@ -26,8 +26,9 @@ _BODY_ROWS = ("position", "angle", "velocity", "angular_velocity", "inv_mass", "
 
 
 @functools.cache
-def _empty(size: SizeClass) -> Level:
-    with jax.ensure_compile_time_eval():  # concrete constants even when first called inside a trace
+def constant_empty_level(size: SizeClass) -> Level:
+    """empty_level(size) as concrete constants, even when first called inside a trace (cached per size class)."""
+    with jax.ensure_compile_time_eval():
         return empty_level(size)
 
 
@@ -45,7 +46,7 @@ def pad_level(level: Level, size: SizeClass | str) -> Level:
                          f"padding only grows a level (same max_vertices)")
     if src == dst:
         return level
-    base = _empty(size)
+    base = constant_empty_level(size)
     P, Pn = src.polygons, dst.polygons
 
     def bodies_rows(old, new):  # polygons first, then circles

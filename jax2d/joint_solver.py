@@ -105,21 +105,33 @@ def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
 
 
 class Schedule(NamedTuple):
-    """Which joint slots the loops visit: the first `count` entries of `order`, in slot order."""
+    """Which joint slots the loops visit: the first `count` entries of `order`, in slot order. A fixed one
+    (jax2d/control.py) visits every slot: order is 0..J-1 and count J, a Python int."""
 
     order: jax.Array  # (J,) int32: the live slots first (ascending), then the others
-    count: jax.Array  # () int32
+    count: jax.Array | int  # () int32; an int in a fixed schedule
+
+    @property
+    def fixed(self) -> bool:
+        return isinstance(self.count, int)
 
 
-def schedule(jc: JointConstraints) -> Schedule:
-    """The joint slots active in any scene of the batch (jc batch-last).
+def schedule(jc: JointConstraints, fixed: bool = False) -> Schedule:
+    """The joint slots active in any scene of the batch (jc batch-last); with `fixed`, every slot.
 
     An inactive slot has zero selections, masses and impulses, so solving it changes
     nothing; the loops skip it (levels rarely fill their joint capacity).
     """
+    if fixed:
+        return Schedule(jnp.arange(jc.revolute.shape[0], dtype=jnp.int32), jc.revolute.shape[0])
     active = jc.revolute + jc.weld
     live = jnp.any(active > 0.0, axis=tuple(range(1, active.ndim)))
     return Schedule(jnp.argsort(~live, stable=True).astype(jnp.int32), jnp.sum(live, dtype=jnp.int32))
+
+
+def _visited(plan: Schedule, i):
+    """The joint slot a loop visits in its i-th iteration."""
+    return i if plan.fixed else at(plan.order, i)
 
 
 def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, plan: Schedule) -> Vel:
@@ -137,7 +149,7 @@ def warm_start(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, plan: Sc
         return _add_at_ends(v, at(jc.sel_a, j), at(jc.sel_b, j), (-(at(jc.ma, j) * px), -(at(jc.ma, j) * py), ta),
                             (at(jc.mb, j) * px, at(jc.mb, j) * py, tb))
 
-    v = jax.lax.fori_loop(0, plan.count, lambda i, v: one_joint(at(plan.order, i), v), jnp.stack(vel))
+    v = jax.lax.fori_loop(0, plan.count, lambda i, v: one_joint(_visited(plan, i), v), jnp.stack(vel))
     return Vel(v[0], v[1], v[2])
 
 
@@ -250,8 +262,9 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
         ends = _ends(jc, j, v)
         wa0, wb0 = ends[0, 2], ends[1, 2]
         # Each stage's results are stored (see math2d.stored) before the next reads them.
-        motor, lower, upper, wa, wb = stored(j, angular, j, impulse, ends)
-        px, py, pw = stored(j, point, j, impulse, ends, wa, wb)
+        token = None if plan.fixed else j  # math2d.stored
+        motor, lower, upper, wa, wb = stored(token, angular, j, impulse, ends)
+        px, py, pw = stored(token, point, j, impulse, ends, wa, wb)
         ma, ia, mb, ib = at(jc.ma, j), at(jc.ia, j), at(jc.mb, j), at(jc.ib, j)
         dwa = wa - wa0 - ia * (cross(at(fr.rax, j), at(fr.ray, j), px, py) + pw)
         dwb = wb - wb0 + ib * (cross(at(fr.rbx, j), at(fr.rby, j), px, py) + pw)
@@ -263,7 +276,7 @@ def solve(jc: JointConstraints, fr: JointFrame, impulse, vel: Vel, softness: Sof
         impulse = set_at(impulse, j, jnp.stack(columns))
         return _add_at_ends(v, sa, sb, (-(ma * px), -(ma * py), dwa), (mb * px, mb * py, dwb)), impulse
 
-    v, impulse = jax.lax.fori_loop(0, plan.count, lambda i, carry: one_joint(at(plan.order, i), carry),
+    v, impulse = jax.lax.fori_loop(0, plan.count, lambda i, carry: one_joint(_visited(plan, i), carry),
                                    (jnp.stack(vel), impulse))
     return Vel(v[0], v[1], v[2]), impulse
 

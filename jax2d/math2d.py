@@ -99,7 +99,11 @@ def stored(token, fn, *args):
     barriers before fusing. A conditional's branch is a computation of its own, so its
     results are stored. `token` is a traced non-negative integer (a loop index): the
     condition is always true, but XLA cannot know that and keeps the conditional.
+    token None: plainly fn(*args), for fixed control flow (jax2d/control.py), where a GPU would
+    wait on the host for every conditional.
     """
+    if token is None:
+        return fn(*args)
 
     def zeros(*a):
         return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(fn, *a))

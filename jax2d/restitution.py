@@ -31,6 +31,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from jax2d.control import if_any
 from jax2d.math2d import Vel
 from jax2d.pairs import ContactLayout
 from jax2d.sweeps import (
@@ -116,5 +117,5 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
         return v, lam
 
     # Most steps bounce nowhere in the batch; the stage would then change nothing, so it is skipped:
-    # a few hundred small kernels per sweep at a small batch.
-    return jax.lax.cond(jnp.any(scene_bounces), run, lambda: (vel, impulses))
+    # a few hundred small kernels per sweep at a small batch (run always with fixed control flow, control.py).
+    return if_any(plan.fixed, scene_bounces, run, lambda: (vel, impulses))

@@ -186,6 +186,9 @@ class SimParams:
     base_thruster_power: float | jax.Array = 10.0
 
 
+CONTROL_FLOWS = ("auto", "skip", "fixed")  # SolverConfig.control_flow
+
+
 @dataclasses.dataclass(frozen=True)
 class SolverConfig:
     """Compile-time solver settings (static: changing them recompiles)."""
@@ -221,8 +224,17 @@ class SolverConfig:
     # The static-walls stages after the joint projection (jax2d/static_walls.py): fast bodies swept back to
     # where they enter a static body, and bodies pushed out of static ones. False skips both (to measure them).
     static_walls: bool = True
+    # How the step's loops and skips are compiled (jax2d/control.py). "skip": loops visit only the colours and
+    # joint slots live in some scene of the batch, and stages nobody in the batch needs are skipped by a
+    # conditional: the least work, the CPU's way. "fixed": every loop runs its full static count and nothing is
+    # skipped by a conditional: a GPU reads a data-dependent trip count or predicate back to the host, a wait
+    # per loop iteration and per conditional. Both give the same results (solving an empty colour or an inactive
+    # joint changes nothing). "auto": skip on the CPU, fixed elsewhere.
+    control_flow: str = "auto"
 
     def __post_init__(self):
+        if self.control_flow not in CONTROL_FLOWS:
+            raise ValueError(f"control_flow must be one of {', '.join(CONTROL_FLOWS)}, not {self.control_flow!r}")
         if self.joint_position_projection is not None and self.joint_projection is None:
             raise ValueError("joint_position_projection is a part of the joint projection stage: it needs "
                              "joint_projection (set both to None to skip the stage)")

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from jax2d import contact_solver
+from jax2d.control import if_any
 from jax2d.math2d import Pose, Vel
 from jax2d.narrow_phase import joint_connected_batch_last
 from jax2d.pairs import ContactLayout
@@ -99,7 +100,7 @@ def _next_vertex(v, n_vertices):
     return jnp.where(last, v[:, :1], jnp.roll(v, -1, axis=1))
 
 
-def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose) -> Pose:
+def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fixed: bool = False) -> Pose:
     """Put every fast body that entered another body's grown core back at the entry (module docstring).
 
     pose0, pose: (M, *batch) the step's start and end poses; joints: batch-last. The bodies that a chain of
@@ -168,7 +169,7 @@ def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose) -> Pose:
         return Pose(jnp.where(back, pose0.x + t * dx, pose.x), jnp.where(back, pose0.y + t * dy, pose.y),
                     jnp.where(back, pose0.a + t * (pose.a - pose0.a), pose.a))
 
-    return jax.lax.cond(jnp.any(fast), run, lambda: pose)
+    return if_any(fixed, fast, run, lambda: pose)  # fixed control flow: always (jax2d/control.py)
 
 
 def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const, impulses, plan, pose: Pose,
@@ -188,7 +189,7 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
     one_static = ((cc.ma == 0.0) != (cc.mb == 0.0)).astype(jnp.float32)  # (S, *batch)
     with_wall = pack_rows(layout, [one_static, one_static]) > 0.0  # (C, 2, K, *batch)
     live = with_wall & (const[:, ROW["nmass0"]:ROW["nmass0"] + 2] > 0.0)
-    token = jnp.int32(0)
+    token = None if plan.fixed else jnp.int32(0)  # math2d.stored
     allowed = PUSH_TOLERANCE * slop
 
     def depth(pose):
@@ -227,4 +228,4 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
         return jax.lax.fori_loop(0, PUSH_ROUNDS - 1, round_, sweeps(pose, sep))
 
     sep = depth(pose)
-    return jax.lax.cond(jnp.any(sep < -allowed), functools.partial(run, pose, vel, sep), lambda: pose)
+    return if_any(plan.fixed, sep < -allowed, functools.partial(run, pose, vel, sep), lambda: pose)

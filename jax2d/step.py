@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
-from jax2d import broad_phase, compiling, contact_solver, joint_solver, static_walls
+from jax2d import broad_phase, contact_solver, control, joint_solver, static_walls
 from jax2d.collide import Manifold
 from jax2d.compact import Compact, unpack, update
 from jax2d.forces import integrate_velocities, thruster_forces
@@ -87,22 +87,21 @@ def step_batch(states: SimState, params: SimParams, motor_actions: jax.Array, th
     B = states.bodies.active.shape[0]
     params = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, jnp.float32), (B,)), params)
     chunks = -(-B // config.chunk)
-    if chunks == 1 or B % chunks:
-        return _step_chunk(states, params, motor_actions, thruster_actions, config)
     # On the CPU, step the batch in `chunks` equal parts one after the other, so a part's constraint
     # rows stay in the CPU's cache. Part c holds scenes c, c + chunks, c + 2 chunks, ...: a split of the
     # batch axis over devices (kinetix.devices) then splits every part the same way. On a GPU or TPU the
     # parts would run one after the other on a device made for running them side by side (a 256-scene
     # part fills a fraction of it: env l stayed at 31k steps/s from batch 256 to 16,384 on an H100), so
-    # there the whole batch is one pass.
-    in_parts = functools.partial(_step_in_parts, chunks=chunks, config=config)
-    whole = functools.partial(_step_chunk, config=config)
-    only = compiling.only_platform()
-    if only is not None:  # one backend in this process (a CPU-only machine): decided here, traced once
-        return (in_parts if only == "cpu" else whole)(states, params, motor_actions, thruster_actions)
-    # Several (a GPU machine also has the CPU): the platform the program is lowered for decides
-    # (lax.platform_dependent traces both ways, about twice the step's trace time; XLA sees one).
-    return jax.lax.platform_dependent(states, params, motor_actions, thruster_actions, cpu=in_parts, default=whole)
+    # there the whole batch is one pass. The control flow is the platform's too (jax2d/control.py).
+    cpu, other = control.resolved(config, True), control.resolved(config, False)
+    if chunks > 1 and B % chunks == 0:
+        on_cpu = functools.partial(_step_in_parts, chunks=chunks, config=cpu)
+    else:
+        on_cpu = functools.partial(_step_chunk, config=cpu)
+    elsewhere = functools.partial(_step_chunk, config=other)
+    if cpu == other and on_cpu.func is _step_chunk:  # nothing differs by platform: trace once
+        return elsewhere(states, params, motor_actions, thruster_actions)
+    return control.per_platform(on_cpu, elsewhere, states, params, motor_actions, thruster_actions)
 
 
 @functools.cache
@@ -276,20 +275,22 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, joints: joi
     """
     h = d.h
     inv_h = 1.0 / h
+    fixed = config.control_flow == control.FIXED
 
     def substep(i, carry):
         pose, vel, cimp, jimp = carry
+        token = None if fixed else i  # math2d.stored
         vel = integrate_velocities(vel, pose, d.dyn, d.inv_mass, d.inv_inertia, d.gravity, d.forces, h)
         frame = joint_solver.frame(d.joints, d.jc, pose)
         vel = joint_solver.warm_start(d.jc, frame, jimp, vel, plan=joints)
         vel = contact_solver.warm_start(layout, d.const, cimp, vel, plan=colours)
         vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=True, plan=joints)
-        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, i)
+        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
         vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
                                          d.max_push_velocity, use_bias=True, plan=colours)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(d.joints, d.jc, pose)
-        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, i)
+        sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
         for _ in range(config.relax_iterations):
             vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=False,
                                            plan=joints)
@@ -302,11 +303,12 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, joints: joi
 
 def _solve(layout, loop: LoopData, config: SolverConfig):
     """Substeps, restitution, the joint projection and the static walls on the prepared loop data (batch-last)."""
-    colours = schedule(loop.const)
-    joints = joint_solver.schedule(loop.jc)
+    fixed = config.control_flow == control.FIXED
+    colours = schedule(loop.const, fixed)
+    joints = joint_solver.schedule(loop.jc, fixed)
     pose, vel, cimp, jimp = _substeps(layout, loop, colours, joints, config)
     gap = functools.partial(contact_solver.current_separation, layout, loop.cc, pose, loop.pose0,
-                            jnp.int32(config.substeps))
+                            None if fixed else jnp.int32(config.substeps))
     vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, gap, loop.h, loop.restitution_threshold,
                             colours, config.impact_sweeps, config.bounce_sweeps)
 
@@ -320,13 +322,13 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
 
     pose, vel = rejoin(pose, vel)
     if config.static_walls:  # nothing gets into or through a static body: continuous collision, then the push-out
-        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose)
+        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, fixed)
         pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, vel, loop.pose0,
                                      loop.linear_slop, rejoin)
         # Again: the push-out's joint projections move bodies too, and one that had no contact with a wall at
         # the step's start has no point to be pushed out by (crowded scene 58, actions key 4, step 1063: a light
         # triangle welded to a motor hub went from 15 cm above the floor to 3.5 cm into it).
-        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose)
+        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, fixed)
     return pose, vel, cimp, jimp
 
 

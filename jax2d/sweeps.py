@@ -95,15 +95,23 @@ class Block(Rows):
 
 
 class Schedule(NamedTuple):
-    """Which colours a step's sweeps visit: the first `count` entries of `order`, in colour order."""
+    """Which colours a step's sweeps visit: the first `count` entries of `order`, in colour order.
+
+    A fixed schedule (jax2d/control.py) visits every colour: count is the colour count as a Python int (a loop
+    XLA knows the trip count of) and points is None (both points of every colour are solved)."""
 
     order: jax.Array  # (C,) int32: the live colours first (ascending), then the others
-    count: jax.Array  # () int32: how many colours are live
-    points: jax.Array  # (C,) int32: 2 if a slot of the colour has a second point in some scene, else 1
+    count: jax.Array | int  # () int32: how many colours are live; an int in a fixed schedule
+    points: jax.Array | None  # (C,) int32: 2 if a slot of the colour has a second point in some scene, else 1
+
+    @property
+    def fixed(self) -> bool:
+        return isinstance(self.count, int)
 
 
-def schedule(const) -> Schedule:
-    """The colours with a point in any scene of the batch (packed const, batch-last).
+def schedule(const, fixed: bool = False) -> Schedule:
+    """The colours with a point in any scene of the batch (packed const, batch-last); with `fixed`, every
+    colour and both points (jax2d/control.py).
 
     A colour with no point has zero masses and zero impulses, so solving it changes nothing
     and the sweeps skip it. Most colours are empty in a real level (the reference levels
@@ -113,6 +121,8 @@ def schedule(const) -> Schedule:
     Likewise a colour's second point is skipped where no slot of it has one in any scene
     (contacts with a circle have one point): solving an absent point changes nothing.
     """
+    if fixed:
+        return Schedule(jnp.arange(const.shape[0], dtype=jnp.int32), const.shape[0], None)
     i = ROW["nmass0"]
     masses = const[:, i:i + 2]
     live = jnp.any(masses > 0.0, axis=tuple(range(1, masses.ndim)))
@@ -148,22 +158,26 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
 
     def colour(v, lam, c):
         vels = gather(v, at(sides, c)).reshape((6, K) + batch)
-        vels, lam = solve_colour(vels, lam, at(plan.points, c), Block(const, c), *(Rows(x, c) for x in inputs))
+        points = None if plan.points is None else at(plan.points, c)
+        vels, lam = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs))
         return gather(jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1), at(write_back, c)), lam
+
+    def visited(i):  # the i-th colour the sweep visits
+        return i if plan.fixed else at(plan.order, i)
 
     def body(i, carry):
         v, out = carry
-        c = at(plan.order, i)
+        c = visited(i)
         # Read from the input, not the carry: reading a slice of the array the loop updates in place
         # made XLA copy all of it in every iteration.
         v, lam = colour(v, at(impulses, c), c)
         return v, set_at(out, c, lam)
 
     def body_same_impulses(i, v):
-        c = at(plan.order, i)
+        c = visited(i)
         return colour(v, at(impulses, c), c)[0]
 
-    probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[0], 2, Block(const, 0),
+    probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[0], None, Block(const, 0),
                                                 *(Rows(x, 0) for x in inputs))[1])
     if probe is None:
         v = jax.lax.fori_loop(0, plan.count, body_same_impulses, stacked)
@@ -197,9 +211,14 @@ def for_points(points, row: int, accumulated, push, vels, lam):
     a conditional too. An absent point keeps its impulse, so push changes nothing.
 
     A point's update is then three kernels; a point loop over separate arrays took about 18.
+    points None (a fixed schedule, jax2d/control.py): both points, without conditionals.
     """
     for k in range(2):
-        new = jax.lax.cond(points > k, functools.partial(accumulated, k), lambda v, lam, r=row + k: lam[r], vels, lam)
+        if points is None:
+            new = accumulated(k, vels, lam)
+        else:
+            new = jax.lax.cond(points > k, functools.partial(accumulated, k), lambda v, lam, r=row + k: lam[r],
+                               vels, lam)
         vels, lam = push(k, vels, lam, new)
     return vels, lam
 

@@ -23,7 +23,9 @@ from kinetix.level import WALLS_SOLVER, size_class
 from kinetix.level_source import RANDOM_DENSE_REWARD
 
 
-def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int) -> dict:
+def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int, timed: bool = True) -> dict:
+    """PPO env steps per second with updates: the first chunk (compiling) apart, then `chunks` timed ones.
+    timed=False stops after the first chunk (it only compiles, e.g. into the persistent cache)."""
     from kinetix.generate import sample_level
 
     sc = size_class(size)
@@ -41,6 +43,8 @@ def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_c
     runner, metrics = trainer.run(runner)
     jax.block_until_ready(metrics)
     first = time.perf_counter() - start
+    if not timed:
+        return {"size": size, "num_envs": num_envs, "first_chunk_seconds": round(first, 2)}
     start = time.perf_counter()
     for _ in range(chunks):
         runner, metrics = trainer.run(runner)

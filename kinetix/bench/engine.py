@@ -167,13 +167,14 @@ def rollout_inputs(workload: Workload, batch: int, steps: int) -> tuple:
     return jax.block_until_ready((scenes, motor, thrust))
 
 
-def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = True) -> dict:
-    """Steps per second of `batch` scenes stepped `steps` times inside one jitted scan, and its cold compile time."""
+def compile_rollout(workload: Workload, batch: int, steps: int, cold: bool = True):
+    """(run, compile seconds, set-up seconds): `run()` steps `batch` scenes `steps` times inside one jitted scan and
+    returns the final scenes, asynchronously (block on it to time it)."""
     import jax
 
     import jax2d
     from jax2d import step
-    from kinetix.devices import batch_devices, per_device
+    from kinetix.devices import per_device
 
     start = time.perf_counter()
     scenes, motor, thrust = rollout_inputs(workload, batch, steps)
@@ -192,8 +193,15 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
     start = time.perf_counter()
     compiled = jax2d.jit(rollout).lower(scenes, params, motor, thrust).compile()
     compile_s = time.perf_counter() - start
+    return (lambda: compiled(scenes, params, motor, thrust)), compile_s, setup_s
 
-    seconds, final, runs = timed_runs(lambda: compiled(scenes, params, motor, thrust))
+
+def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = True) -> dict:
+    """Steps per second of `batch` scenes stepped `steps` times inside one jitted scan, and its cold compile time."""
+    from kinetix.devices import batch_devices
+
+    run, compile_s, setup_s = compile_rollout(workload, batch, steps, cold)
+    seconds, final, runs = timed_runs(run)
     return {
         "what": "engine",
         "size": workload.name,

@@ -60,15 +60,22 @@ def default_level_paths(sizes: list[str]) -> list[Path]:
     return paths
 
 
-def _make_env(level_file):
+def _make_env(level_file, control_flow: str | None = None):
+    """The bench's environment of `level_file` and its params; control_flow: the solver's (SolverConfig), if not
+    the level's own ("auto")."""
+    import dataclasses
+
     from kinetix.env import EnvConfig, EnvParams, make_env
     from kinetix.level import solver_for
 
     # The solver every caller that knows its levels picks (the server, `kinetix train`, `kinetix bench engine
     # --level`), and what the public Kinetix's env does by default (num_static_fixated_polys=4): the walls one
     # when polygon slots 0-3 are static (env s 16: 9.4k -> 12.1-12.7k steps/s; docs/engine.md, issue 35).
+    solver = solver_for(level_file.level)
+    if control_flow is not None:
+        solver = dataclasses.replace(solver, control_flow=control_flow)
     config = EnvConfig(size=level_file.size, observation="entity", action="multi_discrete",
-                       frame_skip=level_file.params.frame_skip, solver=solver_for(level_file.level))
+                       frame_skip=level_file.params.frame_skip, solver=solver)
     return make_env(config, level_file), EnvParams.from_level_params(level_file.params)
 
 
@@ -97,7 +104,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
     }
 
 
-def compile_rollout(level_file, batch: int, steps: int, cold: bool = True):
+def compile_rollout(level_file, batch: int, steps: int, cold: bool = True, control_flow: str | None = None):
     """(run, compile seconds, set-up seconds): `run()` steps `batch` environments `steps` times in one jitted scan
     (auto-reset, random multi-discrete actions) and returns (states, summed rewards, episodes ended) per
     environment, asynchronously (block on it to time it)."""
@@ -108,7 +115,7 @@ def compile_rollout(level_file, batch: int, steps: int, cold: bool = True):
     from kinetix.actions import sample_random_action
     from kinetix.devices import per_device, shard_batch
 
-    env, params = _make_env(level_file)
+    env, params = _make_env(level_file, control_flow)
     action_type = env.config.action
 
     # Every environment carries its own key, and each device steps its own environments

@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The GPU session's measurements in one call of at most 8 minutes (issue 36): tests/test_gpu.py, `kinetix bench
+# env|engine` at s, m, l x 256, 2,048, 16,384 and 65,536 (and the control-flow A/B at 2,048, profiled),
+# `kinetix bench train` at 1,024 and 8,192 envs, then the general agent's curriculum runs, resumed, until the
+# budget ends. Results: $OUT/results.jsonl, $OUT/gpu.png, $OUT/tests.log, $OUT/log.txt, and two archives
+# (the resumed runs, compacted; worker, training and profile logs). kinetix/bench/gpu.py says how it is planned.
+#
+#   OUT=/tmp/gpu-out bash bench/gpu.sh             # on the GPU machine (JAX with CUDA installed)
+#   OUT=/tmp/gpu-out bash bench/gpu.sh --quick     # the dry run on a CPU: small batches, same code
+#
+# Works where viser, mcap and fastapi are missing (nothing here imports the server). The reference levels are
+# read from $KINETIX_LEVELS (a kinetix-levels directory), else ../shared/kinetix-levels, else the project's
+# stand-ins. BUDGET (seconds, default 470) bounds the Python part.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:?set OUT to the directory for the results}
+mkdir -p "$OUT"
+PY=${PYTHON:-python3}
+QUICK=()
+WORKERS=${WORKERS:-10}
+TEST_ARGS="tests/test_gpu.py -n 3"
+if [[ "${1:-}" == "--quick" ]]; then
+  QUICK=(--quick)
+  WORKERS=2
+  TEST_ARGS="tests/test_gpu.py"
+fi
+LEVELS=${KINETIX_LEVELS:-../shared/kinetix-levels}
+[[ -d "$LEVELS" ]] || LEVELS=""
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+export KINETIX_JAX_CACHE=${KINETIX_JAX_CACHE:-$(mktemp -d /tmp/kinetix-gpu-cache.XXXX)}
+LOGS=$(mktemp -d /tmp/kinetix-gpu-logs.XXXX)
+RUNS=()
+for curriculum in dr plr sfl; do RUNS+=("kinetix/agents/general/curricula/$curriculum"); done
+{
+  date -u; git log -1 --format='commit %H %s' 2>/dev/null || true
+  nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv || true
+  "$PY" -c "import jax, flax, optax, numpy; print('jax', jax.__version__, jax.devices(), 'flax', flax.__version__, 'optax', optax.__version__, 'numpy', numpy.__version__)"
+  "$PY" -m kinetix.bench.gpu run --out "$OUT" --logs "$LOGS" ${LEVELS:+--shared "$LEVELS"} "${QUICK[@]}" \
+    --workers "$WORKERS" --budget "${BUDGET:-470}" --tests "$TEST_ARGS" --train "${RUNS[@]}"
+  for run in "${RUNS[@]}"; do "$PY" -m kinetix.agents.resume compact "$run" || echo "compact $run failed"; done
+  tar czf "$OUT/curricula.tar.gz" kinetix/agents/general/curricula
+  tar czf "$OUT/logs.tar.gz" -C "$LOGS" .
+  date -u
+} 2>&1 | tee "$OUT/log.txt"

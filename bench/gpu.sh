@@ -7,6 +7,7 @@
 #
 #   OUT=/tmp/gpu-out bash bench/gpu.sh             # on the GPU machine (JAX with CUDA installed)
 #   OUT=/tmp/gpu-out bash bench/gpu.sh --quick     # the dry run on a CPU: small batches, same code
+#   OUT=... TRAIN=0 bash bench/gpu.sh --no-flows --no-train-bench   # the grid only (kinetix.bench.gpu run -h)
 #
 # Works where viser, mcap and fastapi are missing (nothing here imports the server). The reference levels are
 # read from $KINETIX_LEVELS (a kinetix-levels directory), else ../shared/kinetix-levels, else the project's
@@ -19,26 +20,34 @@ PY=${PYTHON:-python3}
 QUICK=()
 WORKERS=${WORKERS:-10}
 TEST_ARGS="tests/test_gpu.py -n 3"
+PLATFORMS=cuda  # the benchmarks trace for the GPU alone (the tests keep the CPU too, to compare with it)
 if [[ "${1:-}" == "--quick" ]]; then
+  shift
   QUICK=(--quick)
   WORKERS=2
   TEST_ARGS="tests/test_gpu.py"
+  PLATFORMS=cpu
 fi
 LEVELS=${KINETIX_LEVELS:-../shared/kinetix-levels}
 [[ -d "$LEVELS" ]] || LEVELS=""
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 export KINETIX_JAX_CACHE=${KINETIX_JAX_CACHE:-$(mktemp -d /tmp/kinetix-gpu-cache.XXXX)}
 LOGS=$(mktemp -d /tmp/kinetix-gpu-logs.XXXX)
-RUNS=()
-for curriculum in dr plr sfl; do RUNS+=("kinetix/agents/general/curricula/$curriculum"); done
+RUNS=()  # TRAIN=0: no general-agent training at the end
+if [[ "${TRAIN:-1}" != 0 ]]; then
+  for curriculum in dr plr sfl; do RUNS+=("kinetix/agents/general/curricula/$curriculum"); done
+fi
 {
   date -u; git log -1 --format='commit %H %s' 2>/dev/null || true
   nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv || true
   "$PY" -c "import jax, flax, optax, numpy; print('jax', jax.__version__, jax.devices(), 'flax', flax.__version__, 'optax', optax.__version__, 'numpy', numpy.__version__)"
-  "$PY" -m kinetix.bench.gpu run --out "$OUT" --logs "$LOGS" ${LEVELS:+--shared "$LEVELS"} "${QUICK[@]}" \
-    --workers "$WORKERS" --budget "${BUDGET:-470}" --tests "$TEST_ARGS" --train "${RUNS[@]}"
-  for run in "${RUNS[@]}"; do "$PY" -m kinetix.agents.resume compact "$run" || echo "compact $run failed"; done
-  tar czf "$OUT/curricula.tar.gz" kinetix/agents/general/curricula
-  tar czf "$OUT/logs.tar.gz" -C "$LOGS" .
+  JAX_PLATFORMS=$PLATFORMS "$PY" -m kinetix.bench.gpu run --out "$OUT" --logs "$LOGS" ${LEVELS:+--shared "$LEVELS"} \
+    "${QUICK[@]}" --workers "$WORKERS" --budget "${BUDGET:-470}" --tests "$TEST_ARGS" --train "${RUNS[@]}" "$@"
+  if (( ${#RUNS[@]} )); then
+    for run in "${RUNS[@]}"; do "$PY" -m kinetix.agents.resume compact "$run" || echo "compact $run failed"; done
+    tar czf "$OUT/curricula.tar.gz" kinetix/agents/general/curricula
+  fi
+  # The logs without the raw traces (16 MB per file comes back at most); the profiles' summaries are in results.
+  tar czf "$OUT/logs.tar.gz" --exclude='*.xplane.pb' -C "$LOGS" .
   date -u
 } 2>&1 | tee "$OUT/log.txt"

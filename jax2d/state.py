@@ -186,7 +186,7 @@ class SimParams:
     base_thruster_power: float | jax.Array = 10.0
 
 
-CONTROL_FLOWS = ("auto", "skip", "fixed")  # SolverConfig.control_flow
+CONTROL_FLOWS = ("skip", "fixed")  # SolverConfig.control_flow
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,11 +226,11 @@ class SolverConfig:
     static_walls: bool = True
     # How the step's loops and skips are compiled (jax2d/control.py). "skip": loops visit only the colours and
     # joint slots live in some scene of the batch, and stages nobody in the batch needs are skipped by a
-    # conditional: the least work, the CPU's way. "fixed": every loop runs its full static count and nothing is
-    # skipped by a conditional: a GPU reads a data-dependent trip count or predicate back to the host, a wait
-    # per loop iteration and per conditional. Both give the same results (solving an empty colour or an inactive
-    # joint changes nothing). "auto": skip on the CPU, fixed elsewhere.
-    control_flow: str = "auto"
+    # conditional: the least work. "fixed": every loop runs its full static count and nothing is skipped by a
+    # conditional, so no trip count or predicate is read from the data. Both give the same results to rounding
+    # (solving an empty colour or an inactive joint changes nothing). Skip was faster on the CPU and on an H200
+    # (control.py has the measurements), so it is the default everywhere; fixed stays to measure on new hardware.
+    control_flow: str = "skip"
 
     def __post_init__(self):
         if self.control_flow not in CONTROL_FLOWS:

@@ -87,21 +87,17 @@ def step_batch(states: SimState, params: SimParams, motor_actions: jax.Array, th
     B = states.bodies.active.shape[0]
     params = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, jnp.float32), (B,)), params)
     chunks = -(-B // config.chunk)
+    if chunks == 1 or B % chunks:
+        return _step_chunk(states, params, motor_actions, thruster_actions, config)
     # On the CPU, step the batch in `chunks` equal parts one after the other, so a part's constraint
     # rows stay in the CPU's cache. Part c holds scenes c, c + chunks, c + 2 chunks, ...: a split of the
     # batch axis over devices (kinetix.devices) then splits every part the same way. On a GPU or TPU the
     # parts would run one after the other on a device made for running them side by side (a 256-scene
     # part fills a fraction of it: env l stayed at 31k steps/s from batch 256 to 16,384 on an H100), so
-    # there the whole batch is one pass. The control flow is the platform's too (jax2d/control.py).
-    cpu, other = control.resolved(config, True), control.resolved(config, False)
-    if chunks > 1 and B % chunks == 0:
-        on_cpu = functools.partial(_step_in_parts, chunks=chunks, config=cpu)
-    else:
-        on_cpu = functools.partial(_step_chunk, config=cpu)
-    elsewhere = functools.partial(_step_chunk, config=other)
-    if cpu == other and on_cpu.func is _step_chunk:  # nothing differs by platform: trace once
-        return elsewhere(states, params, motor_actions, thruster_actions)
-    return control.per_platform(on_cpu, elsewhere, states, params, motor_actions, thruster_actions)
+    # there the whole batch is one pass.
+    in_parts = functools.partial(_step_in_parts, chunks=chunks, config=config)
+    whole = functools.partial(_step_chunk, config=config)
+    return control.per_platform(in_parts, whole, states, params, motor_actions, thruster_actions)
 
 
 @functools.cache

@@ -7,11 +7,12 @@ A GPU machine is lent for minutes, so everything is planned to fit one call and 
    tests/test_gpu.py runs beside them. On the 2-core CPU one rollout compiles in 6-9 s; one at a time, the
    grid's 30-odd programs would take most of the call. Each program's compile time is reported as its
    worker measured it (with the others compiling beside it: an upper bound).
-2. measure: one process, nothing else on the GPU, takes each program from the cache and times it
-   (kinetix.bench.engine.timed_runs: the median of 5 runs when one is short). First the control-flow A/B
-   at s and l, batch 2,048: the same rollout with the CPU's skip-style control flow and with the fixed one the
-   GPU now gets (jax2d/control.py), each profiled (kernels per step, time by kernel); then the grid, then
-   `kinetix bench train`'s PPO chunks.
+2. measure: one process, nothing else on the GPU but the tests if they are still running, takes each program
+   from the cache and times it (kinetix.bench.engine.timed_runs: the median of 5 runs when one is short).
+   First the A/B at batch 2,048, each profiled (kernels per step, time by kernel) and rerun for bitwise
+   equality: skip against fixed control flow (SolverConfig.control_flow, jax2d/control.py), and env s with
+   the GPU compile option given as XLA_FLAGS instead (FLAG_VARIANTS); then the grid, then `kinetix bench
+   train`'s PPO chunks.
 3. train: the time left goes to the general agent's runs (`--train DIR ...`, resumed with `kinetix train
    --resume`); they start with the compile stage, are stopped (SIGSTOP) while the measurements run, and get
    SIGTERM at the deadline, which makes them finish their chunk and write their state.
@@ -34,6 +35,8 @@ import sys
 import time
 from pathlib import Path
 
+from jax2d.compiling import GPU_COMMAND_BUFFERS
+
 SIZES = ("s", "m", "l")
 BATCHES = (256, 2048, 16384, 65536)
 TRAIN_ENVS = (1024, 8192)
@@ -43,10 +46,9 @@ QUICK_TRAIN_ENVS = (16,)
 AB_BATCH = 2048  # the issue's furthest-behind point (s at 2,048), and l beside it
 # XLA flags tried in the A/B, each in processes of their own (XLA reads XLA_FLAGS once per process). "graphs":
 # loops and conditionals inside CUDA graphs too (command buffers; by default XLA puts only fusions and library
-# calls in them), so that a loop's iterations need not each be launched from the host.
-FLAG_VARIANTS = {
-    "graphs": "--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL",
-}
+# calls in them), so that a loop's iterations need not each be launched from the host. The first GPU call
+# measured it this way, and jax2d.compiling now asks for it per computation (COMPILER_OPTIONS).
+FLAG_VARIANTS = {"graphs": f"--xla_gpu_enable_command_buffer={GPU_COMMAND_BUFFERS}"}
 # The issue's reference table (public Kinetix 3.0.2 with Jax2D 1.0.1 on one H100, JAX 0.11.2), steps/s.
 REFERENCE_H100 = {
     ("env", "l"): {256: 24.4e3, 2048: 147e3, 16384: 331e3},
@@ -59,7 +61,7 @@ REFERENCE_H100 = {
 @dataclasses.dataclass(frozen=True)
 class Job:
     """One benchmark program: what ("env", "engine" or "train"), size class, batch (envs), steps per rollout
-    (train: rollout length), and the solver's control flow (None: the default, "auto")."""
+    (train: rollout length), and the solver's control flow (None: the default, "skip")."""
 
     what: str
     size: str
@@ -81,20 +83,25 @@ def rollout_steps(batch: int) -> int:
     return {256: 100, 2048: 50, 16384: 20}.get(batch, 10)
 
 
-def plan(quick: bool) -> tuple[list[Job], list[Job], list[Job]]:
-    """(the control-flow A/B, the grid, the PPO chunks)."""
+def plan(quick: bool, flows: bool = True, train: bool = True) -> tuple[list[Job], list[Job], list[Job]]:
+    """(the A/B, the grid, the PPO chunks). The A/B at batch 2,048: with `flows`, skip against fixed control
+    flow (SolverConfig.control_flow) for env and engine s and env l; always env s with XLA_FLAGS asking for
+    what jax2d.compiling's GPU option asks for, which should measure the same as the grid's env s (else the
+    option did not take)."""
     batches = QUICK_BATCHES if quick else BATCHES
     ab_batch = QUICK_BATCHES[-1] if quick else AB_BATCH
     ab_sizes = (("s", ("env", "engine")),) if quick else (("s", ("env", "engine")), ("l", ("env",)))
-    ab = [Job(what, size, ab_batch, rollout_steps(ab_batch), flow, flags)
-          for size, whats in ab_sizes for what in whats for flags in ("", *FLAG_VARIANTS) for flow in ("skip", "fixed")]
+    ab = [Job(what, size, ab_batch, rollout_steps(ab_batch), flow)
+          for size, whats in ab_sizes for what in whats for flow in ("skip", "fixed")] if flows else []
+    ab += [Job("env", "s", ab_batch, rollout_steps(ab_batch), None, flags) for flags in FLAG_VARIANTS]
     # The goal's batches first (2,048 and 16,384 at s and l), so that a call cut short still has them.
     order = sorted(batches, key=lambda b: (b not in (2048, 16384), b not in (256,), b))
-    grid = [Job(what, size, batch, rollout_steps(batch)) for batch in order for size in ("s", "l", "m")
+    grid = [Job(what, size, batch, rollout_steps(batch)) for batch in order for size in ("s", "l")
             for what in ("env", "engine")]
-    train = [Job("train", TRAIN_SIZE, envs, 16 if quick else 64)
-             for envs in (QUICK_TRAIN_ENVS if quick else TRAIN_ENVS)]
-    return ab, grid, train
+    grid += [Job(what, "m", batch, rollout_steps(batch)) for batch in order for what in ("env", "engine")]  # no goal
+    chunks = [Job("train", TRAIN_SIZE, envs, 16 if quick else 64)
+              for envs in (QUICK_TRAIN_ENVS if quick else TRAIN_ENVS)] if train else []
+    return ab, grid, chunks
 
 
 # ---------------------------------------------------------------- the programs
@@ -199,7 +206,7 @@ def measure_job(job: Job, shared: str | None, compiled: dict, profile_dir: Path 
     run, load_s, setup_s, level = compile_job(job, shared)
     seconds, result, runs = timed_runs(run)
     out = {"what": job.what, "size": job.size, "batch": job.batch, "steps": job.steps,
-           "control_flow": job.control_flow or "auto", "level": level,
+           "control_flow": job.control_flow or "default", "level": level,
            "steps_per_s": job.batch * job.steps / seconds, "seconds": seconds, "runs": runs,
            "compile_s": compiled.get(job.name), "load_s": round(load_s, 2), "setup_s": round(setup_s, 2),
            "finite": finite(result), **measured_on()}
@@ -295,7 +302,7 @@ def plot(results: list[dict], path: Path) -> str:
         import matplotlib.pyplot as plt
     except ImportError:
         return "matplotlib missing: no plot (python -m kinetix.bench.gpu plot RESULTS.jsonl draws it elsewhere)"
-    rows = [r for r in results if r.get("what") in ("env", "engine") and r.get("control_flow") == "auto"
+    rows = [r for r in results if r.get("what") in ("env", "engine") and r.get("control_flow") == "default"
             and "steps_per_s" in r and not r.get("xla_flags")]
     if not rows:
         return "nothing to plot"
@@ -369,7 +376,7 @@ def main_run(args: argparse.Namespace) -> int:
 
     record({"what": "machine", **backend_report(), "devices": [str(d) for d in jax.devices()],
             "jax": jax.__version__, "python": sys.version.split()[0]})
-    ab, grid, train = plan(args.quick)
+    ab, grid, train = plan(args.quick, flows=not args.no_flows, train=not args.no_train_bench)
 
     # Stage 1: compile everything at once, tests beside; the general agent's runs start compiling too.
     stage = time.monotonic()
@@ -378,6 +385,7 @@ def main_run(args: argparse.Namespace) -> int:
     if args.tests:
         tests = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                   *shlex.split(args.tests)],
+                                 env={k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"},
                                  stdout=open(out / "tests.log", "w"), stderr=subprocess.STDOUT)
     trainers = start_training(args.train, args.train_steps, logs) if args.train else []
     compiled: dict[str, float] = {}
@@ -397,14 +405,6 @@ def main_run(args: argparse.Namespace) -> int:
                     record({"what": "compile_error", "job": job.name, "error": item["error"]})
     record({"what": "stage", "stage": "compile", "seconds": round(time.monotonic() - stage, 1),
             "programs": len(compiled), "workers": args.workers, "compile_s": compiled})
-    if tests is not None:
-        try:
-            tests.wait(timeout=max(1.0, min(args.test_budget - (time.monotonic() - stage), left() - 60)))
-        except subprocess.TimeoutExpired:
-            tests.kill()
-        tail = (out / "tests.log").read_text(errors="replace").strip().splitlines()[-3:]
-        record({"what": "tests", "returncode": tests.returncode, "tail": tail})
-
     # Stage 2: measure, alone on the GPU.
     signal_all(trainers, signal.SIGSTOP)
     profile_dir = logs / "profiles"
@@ -415,7 +415,7 @@ def main_run(args: argparse.Namespace) -> int:
                "--profiles", str(profile_dir)] + (["--shared", args.shared] if args.shared else [])
         try:
             child = subprocess.run(cmd, capture_output=True, text=True, env=flag_env(flags),
-                                   timeout=max(1.0, left() - args.reserve - 120))
+                                   timeout=max(1.0, min(30.0 + 15.0 * len(jobs), left() - args.reserve)))
             lines = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
             for line in lines:
                 record({**line, "xla_flags": FLAG_VARIANTS[flags]})
@@ -428,7 +428,8 @@ def main_run(args: argparse.Namespace) -> int:
             record({"what": "skipped", "job": job.name, "why": "out of time"})
             continue
         try:
-            record(measure_job(job, args.shared, compiled, profile_dir if job in ab else None))
+            profiled = job in ab or (job.what, job.size, job.batch) == ("env", "s", AB_BATCH)
+            record(measure_job(job, args.shared, compiled, profile_dir if profiled else None))
         except Exception as error:  # noqa: BLE001 - one failing program must not cost the rest of the call
             record({"what": "error", "job": job.name, "error": f"{type(error).__name__}: {error}"[:2000]})
     for job in train:
@@ -440,6 +441,14 @@ def main_run(args: argparse.Namespace) -> int:
         except Exception as error:  # noqa: BLE001
             record({"what": "error", "job": job.name, "error": f"{type(error).__name__}: {error}"[:2000]})
     print(plot(results, out / "gpu.png"), flush=True)
+    if tests is not None:  # they ran beside the compiling and, if still going, the measuring (light GPU work)
+        record({"what": "stage", "stage": "tests", "running_after_measuring": tests.poll() is None})
+        try:
+            tests.wait(timeout=max(1.0, min(args.test_budget - (time.monotonic() - start), left() - 20)))
+        except subprocess.TimeoutExpired:
+            tests.kill()
+        tail = (out / "tests.log").read_text(errors="replace").strip().splitlines()[-3:]
+        record({"what": "tests", "returncode": tests.returncode, "tail": tail})
 
     # Stage 3: the time left to the general agent's runs.
     if trainers:
@@ -470,10 +479,13 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--workers", type=int, default=8, help="compile processes (default 8)")
     run.add_argument("--budget", type=float, default=470.0, help="seconds for the whole run (default 470)")
     run.add_argument("--compile-budget", type=float, default=200.0, help="seconds for stage 1 (default 200)")
-    run.add_argument("--test-budget", type=float, default=240.0, help="seconds for the tests (default 240)")
+    run.add_argument("--test-budget", type=float, default=400.0,
+                     help="seconds from the start the tests may take (default 400)")
     run.add_argument("--reserve", type=float, default=30.0, help="seconds kept back from measuring (default 30)")
     run.add_argument("--train-stop", type=float, default=25.0,
                      help="stop the training runs this many seconds before the budget ends (default 25)")
+    run.add_argument("--no-flows", action="store_true", help="leave the skip/fixed control-flow A/B out")
+    run.add_argument("--no-train-bench", action="store_true", help="leave `kinetix bench train`'s chunks out")
     run.add_argument("--tests", default="", help="pytest's arguments, one string, run beside stage 1")
     run.add_argument("--train", nargs="*", default=[], help="run directories to resume (kinetix train --resume)")
     run.add_argument("--train-steps", type=int, default=5_000_000, help="--steps for the resumed runs")

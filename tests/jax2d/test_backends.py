@@ -83,12 +83,11 @@ def test_the_batch_is_split_on_the_cpu_only(monkeypatch):
 
 
 def test_a_batch_no_larger_than_chunk_lowers_the_same_everywhere(monkeypatch):
-    """Below the chunk the split is not platform dependent: with one control flow for all (the default, "auto",
-    picks one per platform: tests/jax2d/test_control.py) the program is the same for every platform."""
+    """Below the chunk nothing is platform dependent: the program is the same for every platform."""
     monkeypatch.setattr(jax2d.compiling, "only_platform", lambda: None)
     def scrub(text: str) -> str:  # without source locations and the platform's name
         text = "\n".join(line for line in text.splitlines() if not line.startswith("#loc"))
         return re.sub(r"mhlo\.platforms = \[[^\]]*\]|\s*loc\(#loc\d*\)", "", text)
 
-    config = jax2d.SolverConfig(chunk=8, control_flow="skip")
+    config = jax2d.SolverConfig(chunk=8)
     assert scrub(_lowered_text("cpu", 8, config)) == scrub(_lowered_text("cuda", 8, config))

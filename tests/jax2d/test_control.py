@@ -1,7 +1,7 @@
-"""SolverConfig.control_flow (jax2d/control.py): skipped work on the CPU, fixed loop counts elsewhere.
+"""SolverConfig.control_flow (jax2d/control.py): skipped work (the default) or fixed loop counts.
 
-The CI machine has no GPU: these lower the step for "cuda" without one to see what a GPU gets, and step both
-ways on the CPU to see that they compute the same. tests/test_gpu.py runs the step on a GPU where there is one.
+The CI machine has no GPU: these lower the step for "cuda" without one to see what a GPU would get, and step
+both ways on the CPU to see that they compute the same.
 """
 
 import dataclasses
@@ -21,35 +21,15 @@ def _conditionals(stablehlo: str) -> int:
     return stablehlo.count("stablehlo.case") + stablehlo.count("stablehlo.if")
 
 
-def test_lowered_for_a_gpu_the_step_has_no_conditionals(monkeypatch):
-    """Lowered for CUDA the step reads no predicate back to the host: every stage runs and every loop has a
-    static count; lowered for the CPU it keeps its skips. The default config, "auto", decides by the platform.
-    In a process whose only backend is a GPU there is no conditional at all; with several backends (a GPU
-    machine also has its CPU) only lax.platform_dependent's choice, a case on a constant that XLA folds."""
+def test_fixed_control_flow_has_no_conditionals_and_skip_is_the_default():
+    """Fixed: no conditional in the step (every stage runs, every loop has a static count), for any platform;
+    skip, the default everywhere, keeps its skips."""
     config = jax2d.SolverConfig()
-    assert config.control_flow == "auto"
-    monkeypatch.setattr(jax2d.compiling, "only_platform", lambda: "cuda")
-    assert _conditionals(_lowered_text("cuda", 8, config)) == 0
-    monkeypatch.setattr(jax2d.compiling, "only_platform", lambda: None)
-    cuda = _lowered_text("cuda", 8, config)
-    assert _conditionals(cuda) == 2 and '"stablehlo.case"(%c' in cuda  # the platform index: a constant
+    assert config.control_flow == "skip"
+    fixed = jax2d.SolverConfig(control_flow="fixed")
+    assert _conditionals(_lowered_text("cuda", 8, fixed)) == 0
+    assert _conditionals(_lowered_text("cpu", 8, fixed)) == 0
     assert _conditionals(_lowered_text("cpu", 8, config)) > 10
-
-
-def test_on_a_cpu_only_machine_auto_is_the_skip_program():
-    """A CPU-only process compiles exactly the program it did before control_flow existed: "auto" is "skip"."""
-    states = scenes.stack(small_random_scenes(8))
-    m = jnp.zeros((8, states.num_joints), jnp.float32)
-    th = jnp.zeros((8, states.num_thrusters), jnp.float32)
-
-    def program(control_flow: str) -> str:  # without source locations: "auto" reaches the step by another path
-        config = jax2d.SolverConfig(control_flow=control_flow)
-        return jax2d.jit(lambda s, m, th: jax2d.step_batch(s, PARAMS, m, th, config=config)).lower(
-            states, m, th).as_text(debug_info=False)
-
-    auto = program("auto")
-    assert len(auto) > 100_000 and auto == program("skip")
-    assert auto != program("fixed")
 
 
 _step = jax2d.jit(lambda states, motors, thrusts, config: jax2d.step_batch(states, PARAMS, motors, thrusts,
@@ -82,6 +62,6 @@ def test_fixed_and_skip_compute_the_same_steps():
 
 
 def test_an_unknown_control_flow_is_refused():
-    with pytest.raises(ValueError, match="control_flow must be one of auto, skip, fixed"):
+    with pytest.raises(ValueError, match="control_flow must be one of skip, fixed"):
         jax2d.SolverConfig(control_flow="graph")
     assert dataclasses.replace(jax2d.SolverConfig(), control_flow="fixed").control_flow == "fixed"

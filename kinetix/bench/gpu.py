@@ -11,8 +11,9 @@ A GPU machine is lent for minutes, so everything is planned to fit one call and 
    from the cache and times it (kinetix.bench.engine.timed_runs: the median of 5 runs when one is short).
    First the A/B at batch 2,048, each profiled (kernels per step, time by kernel) and rerun for bitwise
    equality: skip against fixed control flow (SolverConfig.control_flow, jax2d/control.py), and env s with
-   the GPU compile option given as XLA_FLAGS instead (FLAG_VARIANTS); then the grid, then `kinetix bench
-   train`'s PPO chunks.
+   the GPU compile option given as XLA_FLAGS instead (FLAG_VARIANTS); then the grid at s and l, `kinetix
+   bench train`'s PPO chunks, and the grid at m. On an H200 (docs/gpu.md) the 25-program grid compiled in
+   64 s on 12 workers and measured in 126 s; the PPO chunks' compile took 160-173 s.
 3. train: the time left goes to the general agent's runs (`--train DIR ...`, resumed with `kinetix train
    --resume`); they start with the compile stage, are stopped (SIGSTOP) while the measurements run, and get
    SIGTERM at the deadline, which makes them finish their chunk and write their state.
@@ -78,8 +79,8 @@ class Job:
 
 
 def rollout_steps(batch: int) -> int:
-    """Steps per timed rollout: about 100k-650k scene steps per run, so one run is well past launch costs and
-    the median of five stays short at the largest batches."""
+    """Steps per timed rollout: 25k-650k scene steps per run (0.1-0.4 s on an H200), long enough to be well past
+    the launch of the call, short enough for the median of five at the largest batches."""
     return {256: 100, 2048: 50, 16384: 20}.get(batch, 10)
 
 
@@ -423,22 +424,19 @@ def main_run(args: argparse.Namespace) -> int:
                 record({"what": "error", "job": f"flags {flags}", "error": child.stderr[-2000:]})
         except subprocess.TimeoutExpired:
             record({"what": "error", "job": f"flags {flags}", "error": "timed out"})
-    for job in [job for job in ab if not job.flags] + grid:
+    # The goal's sizes, then the PPO chunks, then m (in no goal): the first call ran out of time before the chunks.
+    ordered = [job for job in ab if not job.flags] + [job for job in grid if job.size != "m"] + train
+    for job in ordered + [job for job in grid if job.size == "m"]:
         if left() < args.reserve:
             record({"what": "skipped", "job": job.name, "why": "out of time"})
             continue
         try:
+            if job.what == "train":
+                record({"what": "train", **train_job(job, timed=True), "compile_s": compiled.get(job.name)})
+                continue
             profiled = job in ab or (job.what, job.size, job.batch) == ("env", "s", AB_BATCH)
             record(measure_job(job, args.shared, compiled, profile_dir if profiled else None))
         except Exception as error:  # noqa: BLE001 - one failing program must not cost the rest of the call
-            record({"what": "error", "job": job.name, "error": f"{type(error).__name__}: {error}"[:2000]})
-    for job in train:
-        if left() < args.reserve:
-            record({"what": "skipped", "job": job.name, "why": "out of time"})
-            continue
-        try:
-            record({"what": "train", **train_job(job, timed=True), "compile_s": compiled.get(job.name)})
-        except Exception as error:  # noqa: BLE001
             record({"what": "error", "job": job.name, "error": f"{type(error).__name__}: {error}"[:2000]})
     print(plot(results, out / "gpu.png"), flush=True)
     if tests is not None:  # they ran beside the compiling and, if still going, the measuring (light GPU work)

@@ -27,24 +27,30 @@ def test_forty_scenes_in_parts_of_ten_equal_one_pass_on_the_cpu():
     """40 random scenes, 12 steps: chunk=10 (4 interleaved parts, one after the other on the CPU) against the
     whole batch at once (the GPU's way). Each step starts both from the one-pass state, so a difference is one
     step's rounding (XLA may contract multiply-adds differently for batch widths 10 and 40), not its growth."""
-    batch, steps = 40, 12
-    motors, thrusts = random_actions(np.random.default_rng(24), steps, (batch,))
+    worst = stepwise_gap(WHOLE, jax2d.SolverConfig(chunk=10), batch=40, steps=12, seed=24)
+    assert worst < 1e-5, worst
+
+
+def stepwise_gap(first: jax2d.SolverConfig, second: jax2d.SolverConfig, batch: int, steps: int, seed: int) -> float:
+    """The largest gap, relative to 1 + |value|, between one step under `first` and one under `second`, each
+    step taken from the same state (first's trajectory) on random scenes with random actions; integer leaves
+    must be equal. Asserts that the scenes moved."""
+    motors, thrusts = random_actions(np.random.default_rng(seed), steps, (batch,))
     states = start = scenes.stack(small_random_scenes(batch))
-    parts = jax2d.SolverConfig(chunk=10)
     worst = 0.0
     for t in range(steps):
         m, th = jnp.asarray(motors[t]), jnp.asarray(thrusts[t])
-        whole, split = _one_step(states, m, th, WHOLE), _one_step(states, m, th, parts)
-        for x, y in zip(jax.tree.leaves(whole), jax.tree.leaves(split), strict=True):
+        a, b = _one_step(states, m, th, first), _one_step(states, m, th, second)
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
             x, y = np.asarray(x), np.asarray(y)
             if x.dtype.kind != "f":
                 np.testing.assert_array_equal(x, y)
             else:
                 worst = max(worst, float(np.max(np.abs(x - y) / (1.0 + np.abs(x)), initial=0.0)))
-        states = whole
+        states = a
     moved = np.max(np.abs(np.asarray(states.bodies.position) - np.asarray(start.bodies.position)))
     assert moved > 1e-3  # the scenes did something
-    assert worst < 1e-5, worst
+    return worst
 
 
 def test_with_one_backend_the_split_is_decided_when_tracing(monkeypatch):

@@ -59,7 +59,26 @@ def options_for(platform: str, options: dict[str, Any]) -> dict[str, Any]:
 
 
 _probe_jit = jax.jit  # noqa: TID251 - probing an option is compiling without the engine's options
-_REFUSED: dict[tuple[str, str], str] = {}  # (platform, option) -> XLA's message, for options its compiler refused
+# (platform, option, repr(value)) -> XLA's message where its compiler refused the option, None where it took it
+_PROBED: dict[tuple[str, str, str], str | None] = {}
+
+
+def _refusal(platform: str, name: str, value: Any) -> str | None:
+    """Why the platform's compiler refuses `name=value` (None if it accepts it), found once per process by
+    compiling a tiny program with it. An error that is not about the option (no such backend here) counts as
+    accepted: the call that needs the platform will say what is wrong."""
+    key = (platform, name, repr(value))
+    if key not in _PROBED:
+        message = None
+        try:
+            on = jax.sharding.SingleDeviceSharding(jax.devices(platform)[0])
+            _probe_jit(lambda x: x + 1, compiler_options={name: value}).lower(
+                jax.ShapeDtypeStruct((), jax.numpy.float32, sharding=on)).compile()
+        except Exception as error:  # noqa: BLE001 - XLA reports a refused option as a runtime error
+            first = str(error).splitlines()[0]
+            message = first if "option" in first.lower() else None
+        _PROBED[key] = message
+    return _PROBED[key]
 
 
 def accepted_options(platform: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -68,24 +87,18 @@ def accepted_options(platform: str, options: dict[str, Any]) -> dict[str, Any]:
     XLA's options come and go between versions (jax 0.11's CPU compiler no longer knows
     `xla_cpu_use_fusion_emitters`, and every CPU compile through here failed on it on a GPU machine), so each
     option is tried once per platform and process, on a tiny program, and one that fails is left out with a
-    warning rather than failing every compile."""
+    warning (once) rather than failing every compile."""
     import warnings
 
-    wanted = options_for(platform, options)
-    for name, value in wanted.items():
-        if (platform, name) in _REFUSED:
-            continue
-        try:
-            on = jax.sharding.SingleDeviceSharding(jax.devices(platform)[0])
-            _probe_jit(lambda x: x + 1, compiler_options={name: value}).lower(
-                jax.ShapeDtypeStruct((), jax.numpy.float32, sharding=on)).compile()
-        except Exception as error:  # noqa: BLE001 - XLA reports a refused option as a runtime error
-            message = str(error).splitlines()[0]
-            if "option" not in message.lower():  # not about the option (no such backend, ...): keep it
-                continue
-            _REFUSED[(platform, name)] = message
+    kept = {}
+    for name, value in options_for(platform, options).items():
+        new = (platform, name, repr(value)) not in _PROBED
+        message = _refusal(platform, name, value)
+        if message is None:
+            kept[name] = value
+        elif new:
             warnings.warn(f"jax2d: {platform} compiles without {name}={value!r}: {message}", stacklevel=3)
-    return {name: value for name, value in wanted.items() if (platform, name) not in _REFUSED}
+    return kept
 
 
 @functools.cache

@@ -19,8 +19,11 @@ def test_an_option_the_compiler_refuses_is_left_out_with_a_warning() -> None:
     with pytest.warns(UserWarning, match="cpu compiles without xla_cpu_no_such_option_for_this_test"):
         twice = jax2d.jit(lambda x: 2 * x, compiler_options={"xla_cpu_no_such_option_for_this_test": True})
         assert float(twice(jnp.float32(3))) == 6.0
+    probes = len(compiling._PROBED)
     assert compiling.accepted_options("cpu", {"xla_cpu_no_such_option_for_this_test": True,
                                               "xla_cpu_use_fusion_emitters": False}) == CPU_OPTIONS
+    assert compiling.accepted_options("cpu", CPU_OPTIONS) == CPU_OPTIONS
+    assert len(compiling._PROBED) <= probes + 1  # each option is probed once per process, accepted or not
 
 
 def test_jit_passes_the_engine_options_and_lets_the_caller_add_or_override(monkeypatch) -> None:

@@ -117,7 +117,7 @@ def _array_params(params=None):
     return jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), SimParams() if params is None else params)
 
 
-def _all_finite(state) -> bool:
+def all_finite(state) -> bool:
     """Whether every float in the state is finite (the engine promises never to emit NaN)."""
     import jax
     import numpy as np
@@ -213,7 +213,7 @@ def measure_rollout(workload: Workload, batch: int, steps: int, cold: bool = Tru
         "compile_s": compile_s,
         "setup_s": setup_s,
         "devices": batch_devices(batch),
-        "finite": _all_finite(final),
+        "finite": all_finite(final),
         **measured_on(),
     }
 
@@ -271,7 +271,7 @@ def measure_python_loop(workload: Workload, calls: int = LOOP_CALLS, cold: bool 
         "compile_s": compile_s,
         "devices": jax.device_count(),
         "cores": usable_cores(),
-        "finite": _all_finite(unpack_host(state)),
+        "finite": all_finite(unpack_host(state)),
         **measured_on(),
     }
 

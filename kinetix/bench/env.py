@@ -33,6 +33,7 @@ from kinetix.bench.engine import (
     LOOP_CALLS,
     LOOP_WARMUP,
     SEED,
+    all_finite,
     backend_flag,
     cold_compiles,
     measured_on,
@@ -99,7 +100,7 @@ def measure_rollout(level_file, name: str, batch: int, steps: int, cold: bool = 
         "setup_s": setup_s,
         "devices": batch_devices(batch),
         "episodes_ended": int(episodes_ended.sum()),
-        "finite": _finite(states),
+        "finite": all_finite(states),
         **measured_on(),
     }
 
@@ -193,7 +194,7 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
         return 1000.0 * (time.perf_counter() - start) / calls, carried
 
     pytree_ms, state = loop(step, out[1], params, carry=lambda output: output[1])
-    finite = _finite(state)
+    finite = all_finite(state)
 
     # The packed loop (env.step_compact), the way a Python loop at batch 1 should call the env.
     if cold:
@@ -220,7 +221,7 @@ def measure_python_loop(level_file, name: str, calls: int = LOOP_CALLS, cold: bo
         "compact_compile_s": compact_compile_s,
         "devices": jax.device_count(),
         "cores": usable_cores(),
-        "finite": finite and _finite(unpack_host(packed).state),
+        "finite": finite and all_finite(unpack_host(packed).state),
         **measured_on(),
     }
 
@@ -267,14 +268,6 @@ def measure_renderer(level_file, name: str, resolution: int, calls: int = 100, c
         "render_batch": PIXEL_BATCH,
         "compile_s": compile_s,
     }
-
-
-def _finite(tree) -> bool:
-    import jax
-    import numpy as np
-
-    arrays = [np.asarray(leaf) for leaf in jax.tree.leaves(tree)]
-    return all(bool(np.isfinite(a).all()) for a in arrays if np.issubdtype(a.dtype, np.floating))
 
 
 def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: int = LOOP_CALLS,

@@ -144,14 +144,6 @@ def train_job(job: Job, timed: bool) -> dict:
     return measure(job.size, job.batch, job.steps, chunks=3, updates_per_call=4, timed=timed)
 
 
-def finite(tree) -> bool:
-    import jax
-    import numpy as np
-
-    arrays = [np.asarray(leaf) for leaf in jax.tree.leaves(tree)]
-    return all(bool(np.isfinite(a).all()) for a in arrays if np.issubdtype(a.dtype, np.floating))
-
-
 # ---------------------------------------------------------------- stage 1: compile workers
 
 def compile_worker(jobs: list[Job], shared: str | None) -> None:
@@ -202,7 +194,7 @@ def flag_env(flags: str) -> dict[str, str]:
 # ---------------------------------------------------------------- stage 2: measuring
 
 def measure_job(job: Job, shared: str | None, compiled: dict, profile_dir: Path | None = None) -> dict:
-    from kinetix.bench.engine import measured_on, timed_runs
+    from kinetix.bench.engine import all_finite, measured_on, timed_runs
 
     run, load_s, setup_s, level = compile_job(job, shared)
     seconds, result, runs = timed_runs(run)
@@ -210,7 +202,7 @@ def measure_job(job: Job, shared: str | None, compiled: dict, profile_dir: Path 
            "control_flow": job.control_flow or "default", "level": level,
            "steps_per_s": job.batch * job.steps / seconds, "seconds": seconds, "runs": runs,
            "compile_s": compiled.get(job.name), "load_s": round(load_s, 2), "setup_s": round(setup_s, 2),
-           "finite": finite(result), **measured_on()}
+           "finite": all_finite(result), **measured_on()}
     if profile_dir is not None:  # the A/B: a profile, and whether a rerun is bitwise the same
         import jax
         import numpy as np

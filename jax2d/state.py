@@ -195,6 +195,10 @@ class SolverConfig:
 
     substeps: int = 4
     relax_iterations: int = 1
+    # More relax passes per substep over only the contact points stiffened by their load (a heavy body on a
+    # light one: contact_solver.load_softness), after the relax_iterations over all. Steps without such a
+    # point in any scene of the batch skip them (sweeps.schedule).
+    stiff_relax_iterations: int = 4
     warm_start: bool = True
     # The joint projection stage (step.py, joint_block.py) at the end of each step: velocities
     # are made to satisfy every joint exactly, closing this fraction of each joint's position

@@ -139,8 +139,9 @@ def load_softness(softness: Softness, normal_mass, load, max_sag) -> tuple[jax.A
     load: the resting load per point and substep (loads.resting_loads), an estimate from the masses and which
     pairs touch; stiffening by last step's impulses instead (Box2D-like warm starting) pumped energy into a
     settling stack (a lagged stiffness stores less than it gives back) and it rocked apart. Stiff points need
-    more Gauss-Seidel passes than the substeps' one relax (a 100:1 stack stiffened 1.5-2x without them fell
-    apart in seconds), which SolverConfig.stiff_relax_iterations gives them (solve's only_stiff)."""
+    more Gauss-Seidel passes than the substeps' one solve and one relax (a 100:1 stack stiffened 1.5-2x without
+    them fell apart in seconds), which SolverConfig.stiff_solve_iterations and stiff_relax_iterations give them
+    (solve's only_stiff)."""
     a2 = softness.mass_scale / softness.impulse_scale
     needed = load * safe_inverse(normal_mass * softness.bias_rate * max_sag)
     stiff = (needed > a2) & (normal_mass > 0.0)
@@ -269,7 +270,7 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
     const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
     softness: the scene's (its bias rate; each point's mass scale is its "soft" row, load_softness).
     only_stiff: solve only the points load_softness stiffened (the others keep their impulses), for the
-    extra relax passes those get (plan: schedule(const, rows="stiff")); reverse_points: each manifold's second
+    extra passes those get (plan: schedule(const, rows="stiff")); reverse_points: each manifold's second
     point first.
     """
 

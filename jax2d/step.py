@@ -8,9 +8,11 @@
     substeps x n:
         integrate velocities    gravity and thrusters (forces)
         warm start              last impulses, applied all at once
-        solve                   joints then contacts, with soft position bias (joint_solver, contact_solver)
+        solve                   joints then contacts, with soft position bias (joint_solver, contact_solver); then
+                                2 more passes over the contacts stiffened by their resting load (loads.py)
         integrate positions
-        relax                   joints then contacts, without bias (removes bias energy)
+        relax                   joints then contacts, without bias (removes bias energy); then 1 more pass over
+                                the stiffened contacts
     restitution             impacts propagated through touching chains, then bounces (restitution)
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
                             (joint_solver.project)
@@ -269,7 +271,7 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, stiff: Sche
     """The substep loop on batch-last arrays: every function here broadcasts over trailing batch axes.
 
     colours: the colours with a point in some scene (contact_solver.schedule); stiff: those with a point
-    stiffened by its load (contact_solver.load_softness), which get more relax passes; joints: the joint
+    stiffened by its load (contact_solver.load_softness), which get more solve and relax passes; joints: the joint
     slots active in some scene (joint_solver.schedule), which the joint loops visit.
     """
     h = d.h
@@ -287,6 +289,14 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, stiff: Sche
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
         vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
                                          d.max_push_velocity, use_bias=True, plan=colours)
+        # More passes over the points stiffened by their load (contact_solver.load_softness): the velocities
+        # the positions are integrated with must hold a heavy body on a light one, which a pass over all
+        # colours does only by about the mass ratio. Every other pass takes a manifold's second point first
+        # (point 0 first in every pass pushed a box between two stiff manifolds to one side each time).
+        for k in range(config.stiff_solve_iterations):
+            vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
+                                             d.max_push_velocity, use_bias=True, plan=stiff, only_stiff=True,
+                                             reverse_points=k % 2 == 0)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(d.joints, d.jc, pose)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
@@ -295,9 +305,6 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, stiff: Sche
                                            plan=joints)
             vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
                                              d.max_push_velocity, use_bias=False, plan=colours)
-        # Every other pass takes a manifold's second point first: always solving point 0 first gave a box
-        # between two stiff manifolds a push to one side in every pass, and a 100:1 stack on the levels' floor
-        # rocked by +-20 mrad for seconds (floor overlap up to 10 mm; 4.0-8.9 mm alternating).
         for k in range(config.stiff_relax_iterations):
             vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
                                              d.max_push_velocity, use_bias=False, plan=stiff, only_stiff=True,

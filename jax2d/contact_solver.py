@@ -19,6 +19,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jax2d.loads import resting_loads
 from jax2d.math2d import Pose, Softness, Vel, cross, rotate, safe_inverse, stored, take_rows
 from jax2d.pairs import ContactLayout
 from jax2d.state import Contacts
@@ -37,6 +38,10 @@ from jax2d.sweeps import (
     unpack_rows,
     velocity_along,
 )
+
+# Contacts under a load are stiffened so that at rest they sink at most this many linear slops (load_softness):
+# 4 mm. At 0.5 slop a 100:1 stack on the levels' floor rocked apart; at 1 slop it held too, with 5 mm.
+LOADED_SAG = 0.8
 
 
 class ContactConstraints(NamedTuple):
@@ -60,6 +65,9 @@ class ContactConstraints(NamedTuple):
     relative_velocity: jax.Array  # (S, 2) normal velocity before solving, for restitution
     impact_boost: jax.Array  # (S, 2) approach speed gained under gravity before impact (<= 0), for restitution
     normal_gravity: jax.Array  # (S,) gravity's relative normal acceleration g_n (normal_gravity), for restitution
+    mass_scale: jax.Array  # (S, 2) the soft solve's mass scale per point (load_softness); its impulse scale is 1 - it
+    stiff: jax.Array  # (S, 2) 1 where load_softness stiffened the point, else 0
+    weight: jax.Array  # (S, 2) the resting load per point and substep (loads.resting_loads), for new stiff points
 
 
 class ContactImpulses(NamedTuple):
@@ -69,10 +77,10 @@ class ContactImpulses(NamedTuple):
 
 
 def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_mass, inv_inertia,
-            friction, restitution, gravity, h) -> ContactConstraints:
+            friction, restitution, gravity, h, softness: Softness, slop) -> ContactConstraints:
     """Build constraints from the step's manifolds (one row per slot), on batch-last arrays:
     per body (M, *batch), manifold fields with the batch after their own axes; gravity (2, *batch);
-    h: the substep."""
+    h: the substep; softness: the contacts' (math2d.soft); slop: (*batch) SimParams.linear_slop."""
     a, b = layout.slot_a, layout.slot_b  # (S,), or (S, B): each scene's own pairs (broad_phase)
     ta = functools.partial(take_rows, idx=a)
     tb = functools.partial(take_rows, idx=b)
@@ -93,6 +101,12 @@ def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_ma
                                   tb(vel.x)[:, None], tb(vel.y)[:, None], tb(vel.w)[:, None], rax, ray, rbx, rby)
     rel = dvx * n_x + dvy * n_y
     acc = normal_gravity(nx, ny, ma, mb, gravity)
+    normal_mass = effective_mass(n_x, n_y)
+    touching = jnp.any(valid, axis=1)
+    points = jnp.sum(valid, axis=1).astype(jnp.float32)
+    weight = (resting_loads(a, b, nx, ny, inv_mass, gravity, touching) * h * safe_inverse(points))[:, None]
+    weight = jnp.where(valid, weight, 0.0)
+    mass_scale, stiff = load_softness(softness, normal_mass, weight, LOADED_SAG * slop)
     return ContactConstraints(
         nx=nx, ny=ny,
         friction=jnp.sqrt(ta(friction) * tb(friction)),
@@ -100,12 +114,39 @@ def prepare(layout: ContactLayout, manifold, valid, pose: Pose, vel: Vel, inv_ma
         ma=ma, ia=ia, mb=mb, ib=ib,
         rax=rax, ray=ray, rbx=rbx, rby=rby,
         base_separation=base,
-        normal_mass=effective_mass(n_x, n_y),
+        normal_mass=normal_mass,
         tangent_mass=effective_mass(n_y, -n_x),
         relative_velocity=rel,
         impact_boost=_impact_boost(rel, manifold.separation, acc[:, None], h),
         normal_gravity=acc,
+        mass_scale=mass_scale,
+        stiff=stiff,
+        weight=weight,
     )
+
+
+def load_softness(softness: Softness, normal_mass, load, max_sag) -> tuple[jax.Array, jax.Array]:
+    """(S, 2, *batch) per point: the soft solve's mass scale, stiffened where the point's resting load would sink
+    it deeper than max_sag, and 1 where it was stiffened (else 0).
+
+    A soft contact is a spring of stiffness m_n w^2 (m_n the point's normal mass): at rest under the impulse
+    lambda per substep its overlap is lambda / (m_n h w^2) = lambda / (m_n b a2), with b the bias rate and
+    a2 = mass_scale / impulse_scale (math2d.soft). A light body carrying a heavy one (100 kg on 1 kg) carries
+    100 times its own weight on its own normal mass, and sank 100 times deeper than under its own weight:
+    8.7 mm at 60 Hz, 9-18 mm for other sizes and stacks. Where a point's overlap would exceed max_sag, a2 is
+    raised so that it does not, with the bias rate kept: w and the damping ratio grow by the same factor, so
+    the point still closes an overlap at the same rate and only its give under the load shrinks.
+    load: the resting load per point and substep (loads.resting_loads), an estimate from the masses and which
+    pairs touch; stiffening by last step's impulses instead (Box2D-like warm starting) pumped energy into a
+    settling stack (a lagged stiffness stores less than it gives back) and it rocked apart. Stiff points need
+    more Gauss-Seidel passes than the substeps' one solve and one relax (a 100:1 stack stiffened 1.5-2x without
+    them fell apart in seconds), which SolverConfig.stiff_solve_iterations and stiff_relax_iterations give them
+    (solve's only_stiff)."""
+    a2 = softness.mass_scale / softness.impulse_scale
+    needed = load * safe_inverse(normal_mass * softness.bias_rate * max_sag)
+    stiff = (needed > a2) & (normal_mass > 0.0)
+    x = jnp.where(stiff, needed, a2)
+    return jnp.where(stiff, x / (1.0 + x), softness.mass_scale), stiff.astype(jnp.float32)
 
 
 def matched_impulses(old: Contacts, key, valid, warm_start: bool) -> ContactImpulses:
@@ -120,6 +161,15 @@ def matched_impulses(old: Contacts, key, valid, warm_start: bool) -> ContactImpu
         return jnp.where(valid, jnp.where(same, x, jnp.where(swapped, x[:, ::-1], 0.0)), 0.0)
 
     return ContactImpulses(pick(old.normal_impulse), pick(old.tangent_impulse), zeros)
+
+
+def seed_impulses(imp: ContactImpulses, cc: ContactConstraints) -> ContactImpulses:
+    """The warm start, with a stiffened point that has no impulse from last step (a new contact) starting from
+    its resting load (loads.resting_loads). Gauss-Seidel passes move a heavy body on a light one only by about
+    the mass ratio per pass, so a new 100:1 stack started from 0 let the heavy box drop into the light one
+    before its support had built up."""
+    fresh = (imp.normal == 0.0) & (cc.stiff > 0.0)
+    return imp._replace(normal=jnp.where(fresh, cc.weight, imp.normal))
 
 
 def normal_gravity(nx, ny, ma, mb, gravity):
@@ -178,7 +228,7 @@ def _push_rows(cc: ContactConstraints, k: int, dx, dy) -> list:
 
 def pack_constraints(layout: ContactLayout, cc: ContactConstraints) -> jax.Array:
     per_point = (cc.rax, cc.ray, cc.rbx, cc.rby, cc.normal_mass, cc.tangent_mass, cc.relative_velocity,
-                 cc.impact_boost)
+                 cc.impact_boost, cc.mass_scale, cc.stiff)
     rows = [cc.nx, cc.ny, cc.friction, cc.restitution, cc.normal_gravity]
     rows += [x[:, k] for x in per_point for k in range(2)]
     direction = {"normal": (cc.nx, cc.ny), "tangent": (cc.ny, -cc.nx)}
@@ -213,10 +263,15 @@ def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule)
 
 
 def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness: Softness, inv_h, max_push,
-          use_bias: bool, plan: Schedule) -> tuple[Vel, jax.Array]:
+          use_bias: bool, plan: Schedule, only_stiff: bool = False,
+          reverse_points: bool = False) -> tuple[Vel, jax.Array]:
     """One Gauss-Seidel sweep of normal then friction constraints over all colours.
 
     const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
+    softness: the scene's (its bias rate; each point's mass scale is its "soft" row, load_softness).
+    only_stiff: solve only the points load_softness stiffened (the others keep their impulses), for the
+    extra passes those get (plan: schedule(const, rows="stiff")); reverse_points: each manifold's second
+    point first.
     """
 
     def normal(c: Block, sep, k, vels, lam):
@@ -224,24 +279,30 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         s = sep[k]
         speculative = s > 0.0
         if use_bias:
+            soft_scale = c.point("soft", k)
             bias = jnp.where(speculative, s * inv_h, jnp.maximum(softness.bias_rate * s, -max_push))
-            mass_scale = jnp.where(speculative, 1.0, softness.mass_scale)
-            impulse_scale = jnp.where(speculative, 0.0, softness.impulse_scale)
+            mass_scale = jnp.where(speculative, 1.0, soft_scale)
+            impulse_scale = jnp.where(speculative, 0.0, 1.0 - soft_scale)
         else:
             bias = jnp.where(speculative, s * inv_h, 0.0)
             mass_scale, impulse_scale = 1.0, 0.0
         old = lam[NORMAL + k]
-        return jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old, 0.0)
+        return keep(c, k, old, jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old,
+                                           0.0))
 
     def friction(c: Block, k, vels, lam):
         vt = velocity_along(c, k, vels, c.ny, -c.nx)
         limit = c.friction * lam[NORMAL + k]
-        return jnp.clip(lam[TANGENT + k] - c.point("tmass", k) * vt, -limit, limit)
+        return keep(c, k, lam[TANGENT + k], jnp.clip(lam[TANGENT + k] - c.point("tmass", k) * vt, -limit, limit))
+
+    def keep(c: Block, k, old, new):
+        return jnp.where(c.point("stiff", k) > 0.0, new, old) if only_stiff else new
 
     def solve_colour(vels, lam, points, c: Block, sep: Rows):
         vels, lam = for_points(points, NORMAL, functools.partial(normal, c, sep),
-                               functools.partial(apply_impulse, c, "normal", NORMAL, track_max=True), vels, lam)
+                               functools.partial(apply_impulse, c, "normal", NORMAL, track_max=True), vels, lam,
+                               reverse_points)
         return for_points(points, TANGENT, functools.partial(friction, c),
-                          functools.partial(apply_impulse, c, "tangent", TANGENT), vels, lam)
+                          functools.partial(apply_impulse, c, "tangent", TANGENT), vels, lam, reverse_points)
 
     return sweep(layout, vel, solve_colour, const, impulses, plan, separation)

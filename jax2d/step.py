@@ -8,9 +8,11 @@
     substeps x n:
         integrate velocities    gravity and thrusters (forces)
         warm start              last impulses, applied all at once
-        solve                   joints then contacts, with soft position bias (joint_solver, contact_solver)
+        solve                   joints then contacts, with soft position bias (joint_solver, contact_solver); then
+                                2 more passes over the contacts stiffened by their resting load (loads.py)
         integrate positions
-        relax                   joints then contacts, without bias (removes bias energy)
+        relax                   joints then contacts, without bias (removes bias energy); then 1 more pass over
+                                the stiffened contacts
     restitution             impacts propagated through touching chains, then bounces (restitution)
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
                             (joint_solver.project)
@@ -239,10 +241,12 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
         shareable = dyn == 0.0  # (M, B)
         layout, placed = broad_phase.colour(layout, live, shareable, M)
         valid = valid & placed[:, None]  # (L, 2, B) & (L, 1, B)
+    warm = contact_solver.matched_impulses(state.contacts, manifold.key, valid, config.warm_start)
+    contact_softness = soft(jnp.minimum(params.contact_hertz, 0.25 * inv_h), params.contact_damping_ratio, h)
     cc = contact_solver.prepare(layout, manifold, valid, pose0, vel, inv_mass, inv_inertia,
-                                pad_rows(b.friction, M), pad_rows(b.restitution, M), state.gravity, h)
-    cimp = contact_solver.pack_impulses(layout, contact_solver.matched_impulses(state.contacts, manifold.key, valid,
-                                                                                config.warm_start))
+                                pad_rows(b.friction, M), pad_rows(b.restitution, M), state.gravity, h,
+                                contact_softness, params.linear_slop)
+    cimp = contact_solver.pack_impulses(layout, contact_solver.seed_impulses(warm, cc) if config.warm_start else warm)
     loop = LoopData(
         dyn=dyn, inv_mass=inv_mass, inv_inertia=inv_inertia, pose0=pose0, vel0=vel,
         joints=state.joints, jc=jc, cc=cc,
@@ -252,7 +256,7 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
         forces=thruster_forces(state.thrusters, thruster_actions, M, params),
         gravity=state.gravity,
         h=jnp.asarray(h, jnp.float32),
-        contact_softness=soft(jnp.minimum(params.contact_hertz, 0.25 * inv_h), params.contact_damping_ratio, h),
+        contact_softness=contact_softness,
         joint_softness=soft(params.joint_hertz, params.joint_damping_ratio, h),
         max_push_velocity=jnp.asarray(params.max_push_velocity, jnp.float32),
         restitution_threshold=jnp.asarray(params.restitution_threshold, jnp.float32),
@@ -262,11 +266,12 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
     return loop, valid, layout
 
 
-def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, joints: joint_solver.Schedule,
+def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, stiff: Schedule, joints: joint_solver.Schedule,
               config: SolverConfig):
     """The substep loop on batch-last arrays: every function here broadcasts over trailing batch axes.
 
-    colours: the colours with a point in some scene (contact_solver.schedule); joints: the joint
+    colours: the colours with a point in some scene (contact_solver.schedule); stiff: those with a point
+    stiffened by its load (contact_solver.load_softness), which get more solve and relax passes; joints: the joint
     slots active in some scene (joint_solver.schedule), which the joint loops visit.
     """
     h = d.h
@@ -284,6 +289,14 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, joints: joi
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
         vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
                                          d.max_push_velocity, use_bias=True, plan=colours)
+        # More passes over the points stiffened by their load (contact_solver.load_softness): the velocities
+        # the positions are integrated with must hold a heavy body on a light one, which a pass over all
+        # colours does only by about the mass ratio. Every other pass takes a manifold's second point first
+        # (point 0 first in every pass pushed a box between two stiff manifolds to one side each time).
+        for k in range(config.stiff_solve_iterations):
+            vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
+                                             d.max_push_velocity, use_bias=True, plan=stiff, only_stiff=True,
+                                             reverse_points=k % 2 == 0)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(d.joints, d.jc, pose)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
@@ -292,6 +305,10 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, joints: joi
                                            plan=joints)
             vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
                                              d.max_push_velocity, use_bias=False, plan=colours)
+        for k in range(config.stiff_relax_iterations):
+            vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
+                                             d.max_push_velocity, use_bias=False, plan=stiff, only_stiff=True,
+                                             reverse_points=k % 2 == 0)
         return pose, vel, cimp, jimp
 
     return jax.lax.fori_loop(0, config.substeps, substep, (d.pose0, d.vel0, d.cimp, d.jimp))
@@ -301,8 +318,9 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
     """Substeps, restitution, the joint projection and the static walls on the prepared loop data (batch-last)."""
     fixed = config.control_flow == control.FIXED
     colours = schedule(loop.const, fixed)
+    stiff = schedule(loop.const, fixed, rows="stiff")
     joints = joint_solver.schedule(loop.jc, fixed)
-    pose, vel, cimp, jimp = _substeps(layout, loop, colours, joints, config)
+    pose, vel, cimp, jimp = _substeps(layout, loop, colours, stiff, joints, config)
     gap = functools.partial(contact_solver.current_separation, layout, loop.cc, pose, loop.pose0,
                             None if fixed else jnp.int32(config.substeps))
     vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, gap, loop.h, loop.restitution_threshold,

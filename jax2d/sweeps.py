@@ -31,7 +31,8 @@ VEL_ROWS = ("xa", "xb", "ya", "yb", "wa", "wb")  # x of side a, x of side b, y o
 PUSH_ROWS = {(kind, k): tuple(f"{kind}{k}_{v}" for v in VEL_ROWS) for kind in ("normal", "tangent") for k in range(2)}
 CONST_ROWS = ("nx", "ny", "friction", "restitution", "gn",
               "rax0", "rax1", "ray0", "ray1", "rbx0", "rbx1", "rby0", "rby1",
-              "nmass0", "nmass1", "tmass0", "tmass1", "rel0", "rel1", "boost0", "boost1") + sum(PUSH_ROWS.values(), ())
+              "nmass0", "nmass1", "tmass0", "tmass1", "rel0", "rel1", "boost0", "boost1",
+              "soft0", "soft1", "stiff0", "stiff1") + sum(PUSH_ROWS.values(), ())
 IMPULSE_ROWS = ("n0", "n1", "t0", "t1", "max0", "max1")
 ROW = {name: i for i, name in enumerate(CONST_ROWS)}
 NORMAL, TANGENT, MAX = 0, 2, 4  # first impulse row of the normal, tangent and largest normal impulses
@@ -109,9 +110,10 @@ class Schedule(NamedTuple):
         return isinstance(self.count, int)
 
 
-def schedule(const, fixed: bool = False) -> Schedule:
+def schedule(const, fixed: bool = False, rows: str = "nmass") -> Schedule:
     """The colours with a point in any scene of the batch (packed const, batch-last); with `fixed`, every
-    colour and both points (jax2d/control.py).
+    colour and both points (jax2d/control.py). rows: the per-point constant rows that are positive where a
+    point counts ("nmass": every point; "stiff": the points stiffened by their load, contact_solver.load_softness).
 
     A colour with no point has zero masses and zero impulses, so solving it changes nothing
     and the sweeps skip it. Most colours are empty in a real level (the reference levels
@@ -123,7 +125,7 @@ def schedule(const, fixed: bool = False) -> Schedule:
     """
     if fixed:
         return Schedule(jnp.arange(const.shape[0], dtype=jnp.int32), const.shape[0], None)
-    i = ROW["nmass0"]
+    i = ROW[f"{rows}0"]
     masses = const[:, i:i + 2]
     live = jnp.any(masses > 0.0, axis=tuple(range(1, masses.ndim)))
     order = jnp.argsort(~live, stable=True).astype(jnp.int32)
@@ -200,8 +202,9 @@ def with_rows(lam, rows: dict) -> jax.Array:
     return lam
 
 
-def for_points(points, row: int, accumulated, push, vels, lam):
-    """Solve one impulse row of the points k < `points` of a colour, point by point.
+def for_points(points, row: int, accumulated, push, vels, lam, reverse: bool = False):
+    """Solve one impulse row of the points k < `points` of a colour, point by point (the second first with
+    `reverse`).
 
     accumulated(k, vels, lam) -> the new accumulated impulse of row `row + k`; push(k, vels, lam, new)
     -> the velocities and impulses with it applied. The first is the branch of a conditional
@@ -213,7 +216,7 @@ def for_points(points, row: int, accumulated, push, vels, lam):
     A point's update is then three kernels; a point loop over separate arrays took about 18.
     points None (a fixed schedule, jax2d/control.py): both points, without conditionals.
     """
-    for k in range(2):
+    for k in ((1, 0) if reverse else (0, 1)):
         if points is None:
             new = accumulated(k, vels, lam)
         else:

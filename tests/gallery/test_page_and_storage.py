@@ -119,11 +119,9 @@ def test_open_store_default_path_and_env(tmp_path, monkeypatch):
         "postgresql://u@h/db"))
 
 
-def test_two_processes_starting_at_once_migrate_and_seed_once(db_url):
-    """Two stores (as two server processes would) opening an empty gallery at the same moment."""
+def _open_two_at_once(url: str, seed_dir) -> tuple[list[Store], list[BaseException]]:
+    """Two stores (as two server processes would) opening `url` at the same moment: (opened, errors)."""
     import threading
-
-    from server.gallery.store import REPO_LEVELS
 
     opened, errors = [], []
     barrier = threading.Barrier(2)
@@ -131,8 +129,8 @@ def test_two_processes_starting_at_once_migrate_and_seed_once(db_url):
     def start() -> None:
         try:
             barrier.wait()
-            opened.append(Store(db_url, seed_dir=REPO_LEVELS))
-        except BaseException as error:  # noqa: B036 - reported below
+            opened.append(Store(url, seed_dir=seed_dir))
+        except BaseException as error:  # noqa: B036 - reported by the callers
             errors.append(error)
 
     threads = [threading.Thread(target=start) for _ in range(2)]
@@ -140,6 +138,14 @@ def test_two_processes_starting_at_once_migrate_and_seed_once(db_url):
         t.start()
     for t in threads:
         t.join()
+    return opened, errors
+
+
+def test_two_processes_starting_at_once_migrate_and_seed_once(db_url):
+    """Two stores (as two server processes would) opening an empty gallery at the same moment."""
+    from server.gallery.store import REPO_LEVELS
+
+    opened, errors = _open_two_at_once(db_url, REPO_LEVELS)
     assert not errors, errors
     project = sorted(REPO_LEVELS.glob("*.json"))
     assert opened[0].counts()["levels"] == len(project) > 0
@@ -153,25 +159,8 @@ def test_two_processes_starting_at_once_migrate_and_seed_once(db_url):
 def test_new_sqlite_galleries_opened_by_two_stores_at_once_never_report_locked(tmp_path):
     """Switching a new file to WAL needs an exclusive lock, and SQLite answers "database is locked" at once
     (no busy wait) to the loser of that race: about one race in five failed before schema._enter_wal."""
-    import threading
-
     for attempt in range(20):
-        url = f"sqlite:///{tmp_path / f'race{attempt}.sqlite3'}"
-        opened, errors = [], []
-        barrier = threading.Barrier(2)
-
-        def start(url=url, opened=opened, errors=errors, barrier=barrier) -> None:
-            try:
-                barrier.wait()
-                opened.append(Store(url, seed_dir=None))
-            except BaseException as error:  # noqa: B036 - reported below
-                errors.append(error)
-
-        threads = [threading.Thread(target=start) for _ in range(2)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        opened, errors = _open_two_at_once(f"sqlite:///{tmp_path / f'race{attempt}.sqlite3'}", None)
         assert not errors, (attempt, errors)
         assert [s.schema_version for s in opened] == [opened[0].schema_version] * 2
         for store in opened:

@@ -86,7 +86,7 @@ class Rows:
         self.packed, self.c = packed, c
 
     def __getitem__(self, i):
-        return at(self.packed[i], self.c) if isinstance(i, int) else at_colour(self.packed[i], self.c)
+        return at_colour(self.packed[i], self.c) if isinstance(i, slice) else at(self.packed[i], self.c)
 
 
 class Block(Rows):

@@ -54,9 +54,5 @@ def goal_distance(level: Level) -> jax.Array:
     b = level.sim.bodies
     green = b.active & (level.roles == ROLE_GREEN)
     blue = b.active & (level.roles == ROLE_BLUE)
-    # The norm written out: as jnp.linalg.norm (a reduction over the 2 coordinates) XLA's CPU compiler handed it
-    # to a library fusion that took 4 % of env s at batch 256 (241 us a step); the same sums, elementwise.
-    dx = b.position[:, None, 0] - b.position[None, :, 0] + 1e-12
-    dy = b.position[:, None, 1] - b.position[None, :, 1] + 1e-12
-    d = jnp.sqrt(dx * dx + dy * dy)
+    d = jnp.linalg.norm(b.position[:, None, :] - b.position[None, :, :] + 1e-12, axis=-1)
     return jnp.min(jnp.where(green[:, None] & blue[None, :], d, FAR))

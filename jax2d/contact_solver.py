@@ -194,7 +194,7 @@ def _impact_boost(rel, separation, acc, h):
 
 
 def current_separation(layout: ContactLayout, cc: ContactConstraints, pose: Pose, pose0: Pose, token):
-    """Packed (2, C, K, *batch) separation after the bodies moved from pose0 to pose, anchors rotated with them.
+    """Packed (C, 2, K, *batch) separation after the bodies moved from pose0 to pose, anchors rotated with them.
 
     Runs inside the substeps on batch-last arrays (see step.py): per-body (M, *batch), per-slot (S, *batch).
     token: a traced non-negative integer, the substep (see math2d.stored).
@@ -267,7 +267,7 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
           reverse_points: bool = False) -> tuple[Vel, jax.Array]:
     """One Gauss-Seidel sweep of normal then friction constraints over all colours.
 
-    const: packed constraints; impulses: packed (6, C, K); separation: packed (2, C, K).
+    const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
     softness: the scene's (its bias rate; each point's mass scale is its "soft" row, load_softness).
     only_stiff: solve only the points load_softness stiffened (the others keep their impulses), for the
     extra passes those get (plan: schedule(const, rows="stiff")); reverse_points: each manifold's second

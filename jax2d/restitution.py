@@ -48,7 +48,7 @@ from jax2d.sweeps import (
     with_rows,
 )
 
-# Rows of the propagation pass's packed (6, C, K, *batch) array.
+# Rows of the propagation pass's packed (C, 6, K, *batch) array.
 _KICK = 0  # rows 0-1: the propagation impulse taken by point 0 / 1
 _END = 2  # rows 2-3: its normal velocity at the end of the propagation
 _GAP = 4  # rows 4-5: its separation at the end of the step
@@ -58,13 +58,13 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
                 impact_sweeps: int, bounce_sweeps: int) -> tuple[Vel, jax.Array]:
     """The bounce stage (module docstring). vel: the solved velocities; vel0: those from before the step;
     const, impulses: the packed contact constraints and the step's accumulated impulses (contact_solver);
-    gap: a function giving (2, C, K, *batch) each point's separation at the step's end (called only where
+    gap: a function giving (C, 2, K, *batch) each point's separation at the step's end (called only where
     something bounces);
     h: the substep."""
-    rel = const[ROW["rel0"]:ROW["rel0"] + 2] + const[ROW["boost0"]:ROW["boost0"] + 2]
-    pushed = impulses[MAX:MAX + 2] > 0.0
-    bouncy = const[None, ROW["restitution"]] > 0.0
-    hit = (rel < -threshold) & pushed & bouncy  # (2, C, K, *batch)
+    rel = const[:, ROW["rel0"]:ROW["rel0"] + 2] + const[:, ROW["boost0"]:ROW["boost0"] + 2]
+    pushed = impulses[:, MAX:MAX + 2] > 0.0
+    bouncy = const[:, None, ROW["restitution"]] > 0.0
+    hit = (rel < -threshold) & pushed & bouncy  # (C, 2, K, *batch)
     scene_bounces = jnp.any(hit, axis=(0, 1, 2))  # (*batch)
 
     def approach(c: Block, k, vels):
@@ -110,7 +110,7 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
         for _ in range(impact_sweeps):
             v, prop = sweep(layout, v, propagate_colour, const, prop, plan, impulses)
         _, prop = sweep(layout, v, measure_colour, const, prop, plan)
-        prop = prop.at[_GAP:_GAP + 2].set(gap())
+        prop = prop.at[:, _GAP:_GAP + 2].set(gap())
         v, lam = vel, impulses
         for _ in range(bounce_sweeps):
             v, lam = sweep(layout, v, bounce_colour, const, lam, plan, prop)

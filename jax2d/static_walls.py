@@ -187,8 +187,8 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
     scene's result does not depend on the rest of its batch.
     """
     one_static = ((cc.ma == 0.0) != (cc.mb == 0.0)).astype(jnp.float32)  # (S, *batch)
-    with_wall = pack_rows(layout, [one_static, one_static]) > 0.0  # (2, C, K, *batch)
-    live = with_wall & (const[ROW["nmass0"]:ROW["nmass0"] + 2] > 0.0)
+    with_wall = pack_rows(layout, [one_static, one_static]) > 0.0  # (C, 2, K, *batch)
+    live = with_wall & (const[:, ROW["nmass0"]:ROW["nmass0"] + 2] > 0.0)
     token = None if plan.fixed else jnp.int32(0)  # math2d.stored
     allowed = PUSH_TOLERANCE * slop
 

@@ -82,7 +82,7 @@ def step_batch(states: SimState, params: SimParams, motor_actions: jax.Array, th
     """Advance B scenes stacked on a leading axis. params: shared (scalar leaves) or per scene ((B,) leaves).
 
     The store runs per scene (vmap). The narrow phase, preparation and the substep loop run on
-    batch-last arrays (per body (M, B), per slot (F, C, K, B)): under a plain vmap the batch
+    batch-last arrays (per body (M, B), per slot (C, F, K, B)): under a plain vmap the batch
     would be the major axis and each colour's K slots the minor one, and XLA's CPU loops then
     move a handful of floats per row; batch-last they stream over B (measured 2x on the sweeps).
     """
@@ -194,8 +194,8 @@ class LoopData(NamedTuple):
     joints: Joints  # anchors and reference angles for the joint frames
     jc: joint_solver.JointConstraints
     cc: contact_solver.ContactConstraints
-    const: jax.Array  # packed contact constraints (F, C, K)
-    cimp: jax.Array  # packed warm-start impulses (6, C, K)
+    const: jax.Array  # packed contact constraints (C, F, K)
+    cimp: jax.Array  # packed warm-start impulses (C, 6, K)
     jimp: jax.Array  # (J, 6)
     forces: tuple
     gravity: jax.Array  # (2,)

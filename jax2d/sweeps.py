@@ -15,15 +15,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jax2d.math2d import Vel, at, gather_scene_rows, scene_rows, take_rows
+from jax2d.math2d import Vel, at, gather_scene_rows, scene_rows, set_at, take_rows
 from jax2d.pairs import ContactLayout
 
-# Packed layout. Inside the sweeps every per-slot quantity is one row of a field-major
-# (F, C, K) array: a colour's row of a field is a contiguous run of its K slots (times the batch),
-# read where it is used (Rows). Constraint data is packed once per step; impulses stay packed
-# through all substeps. Field-major, packing is a stack and a reshape: colour-major (C, F, K)
-# needed a transpose of every packed array and a copy of the constraints in every step (env s at
-# batch 256: 4 such kernels, about 5 % of the step's time under the profiler).
+# Packed layout. Inside the sweeps every per-slot quantity is one row of a colour-major
+# (C, F, K) array: the scan slices one (F, K) block per colour, each field a contiguous row
+# of the colour's K slots. Constraint data is packed once per step; impulses stay packed
+# through all substeps.
 #
 # A colour's velocities are the (3, 2K) rows the sweep gathers, viewed as six rows of K (VEL_ROWS).
 # An impulse p along a point's normal or tangent changes them by p times six constant rows, its
@@ -41,29 +39,19 @@ NORMAL, TANGENT, MAX = 0, 2, 4  # first impulse row of the normal, tangent and l
 
 
 def pack_rows(layout: ContactLayout, rows) -> jax.Array:
-    """A list of (S, *batch) arrays, slot order -> (F, C, K, *batch), solve order."""
+    """A list of (S, *batch) arrays, slot order -> (C, F, K, *batch), solve order."""
     C, K = layout.num_colours, layout.per_colour
     stacked = jnp.stack(rows).astype(jnp.float32)
     if layout.walls_repeat:
         stacked = take_rows(stacked, layout.solve_slots, axis=1)
-    return stacked.reshape((len(rows), C, K) + stacked.shape[2:])
-
-
-def at_colour(packed, c):
-    """(F, K, *batch) colour c of a packed (F, C, K, *batch) array, c a traced loop index in range."""
-    return jax.lax.dynamic_index_in_dim(packed, c, 1, keepdims=False, allow_negative_indices=False)
-
-
-def set_colour(packed, c, block):
-    """packed (F, C, K, *batch) with colour c's (F, K, *batch) block replaced, in place (see math2d.set_at)."""
-    return jax.lax.dynamic_update_index_in_dim(packed, block, c, 1, allow_negative_indices=False)
+    return jnp.swapaxes(stacked.reshape((len(rows), C, K) + stacked.shape[2:]), 0, 1)
 
 
 def unpack_rows(layout: ContactLayout, packed) -> jax.Array:
-    """(F, C, K, *batch), solve order -> (F, S, *batch), slot order. A per-scene slot order ((S, B): the broad
+    """(C, F, K, *batch), solve order -> (F, S, *batch), slot order. A per-scene slot order ((S, B): the broad
     phase's layouts) may point past the end, for rows that were not solved: they unpack as 0."""
-    F, C, K = packed.shape[:3]
-    rows = packed.reshape((F, C * K) + packed.shape[3:])
+    C, F, K = packed.shape[:3]
+    rows = jnp.swapaxes(packed, 0, 1).reshape((F, C * K) + packed.shape[3:])
     if not layout.walls_repeat:
         return rows
     return take_rows(rows, layout.slot_order, axis=1, fill=0.0 if jnp.ndim(layout.slot_order) == 2 else None)
@@ -75,7 +63,7 @@ def relative_velocity(vax, vay, wa, vbx, vby, wb, rax, ray, rbx, rby):
 
 
 class Rows:
-    """Colour c's rows of a packed (F, C, K, *batch) array, read row by row where they are used.
+    """Colour c's rows of a packed (C, F, K, *batch) array, read row by row where they are used.
 
     Each read is a dynamic slice that XLA fuses into the kernel reading it; slicing the colour's
     whole (F, K) block first made the solver copy it in every colour of every sweep, because
@@ -86,7 +74,7 @@ class Rows:
         self.packed, self.c = packed, c
 
     def __getitem__(self, i):
-        return at_colour(self.packed[i], self.c) if isinstance(i, slice) else at(self.packed[i], self.c)
+        return at(self.packed[:, i], self.c)
 
 
 class Block(Rows):
@@ -135,14 +123,13 @@ def schedule(const, fixed: bool = False, rows: str = "nmass") -> Schedule:
     Likewise a colour's second point is skipped where no slot of it has one in any scene
     (contacts with a circle have one point): solving an absent point changes nothing.
     """
-    C = const.shape[1]
     if fixed:
-        return Schedule(jnp.arange(C, dtype=jnp.int32), C, None)
+        return Schedule(jnp.arange(const.shape[0], dtype=jnp.int32), const.shape[0], None)
     i = ROW[f"{rows}0"]
-    masses = const[i:i + 2]  # (2, C, K, *batch)
-    live = jnp.any(masses > 0.0, axis=(0,) + tuple(range(2, masses.ndim)))
+    masses = const[:, i:i + 2]
+    live = jnp.any(masses > 0.0, axis=tuple(range(1, masses.ndim)))
     order = jnp.argsort(~live, stable=True).astype(jnp.int32)
-    second = jnp.any(masses[1] > 0.0, axis=tuple(range(1, masses.ndim - 1)))
+    second = jnp.any(masses[:, 1] > 0.0, axis=tuple(range(1, masses.ndim - 1)))
     return Schedule(order, jnp.sum(live, dtype=jnp.int32), 1 + second.astype(jnp.int32))
 
 
@@ -150,7 +137,7 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
     """Run `solve_colour(vels, lam, points, const_block, *input_rows) -> (vels, lam)` on every live
     colour in order. vels: the colour's (6, K, *batch) VEL_ROWS; lam: its (6, K, *batch) impulse
     rows; points: how many of the two points any slot of the colour has; const_block and
-    input_rows: the colour's rows of const and of each packed (F, C, K, *batch) input. A
+    input_rows: the colour's rows of const and of each packed (C, F, K, *batch) input. A
     solve_colour that changes no impulse returns lam None.
 
     A loop over the schedule's live colours: each iteration gathers the velocities of the K bodies
@@ -158,7 +145,7 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
     gather (layout.write_back). One array rather than six: each gather and velocity update is then
     one kernel, and a step at a small batch is a long chain of such small kernels. Skipped colours
     keep their impulses, which is what solving them would give.
-    Returns the velocities and the packed (6, C, K, *batch) impulses.
+    Returns the velocities and the packed (C, 6, K, *batch) impulses.
     """
     K = layout.per_colour
     sides, write_back = jnp.asarray(layout.solve_sides), jnp.asarray(layout.write_back)
@@ -185,14 +172,14 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
         c = visited(i)
         # Read from the input, not the carry: reading a slice of the array the loop updates in place
         # made XLA copy all of it in every iteration.
-        v, lam = colour(v, at_colour(impulses, c), c)
-        return v, set_colour(out, c, lam)
+        v, lam = colour(v, at(impulses, c), c)
+        return v, set_at(out, c, lam)
 
     def body_same_impulses(i, v):
         c = visited(i)
-        return colour(v, at_colour(impulses, c), c)[0]
+        return colour(v, at(impulses, c), c)[0]
 
-    probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[:, 0], None, Block(const, 0),
+    probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[0], None, Block(const, 0),
                                                 *(Rows(x, 0) for x in inputs))[1])
     if probe is None:
         v = jax.lax.fori_loop(0, plan.count, body_same_impulses, stacked)

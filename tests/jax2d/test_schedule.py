@@ -9,10 +9,10 @@ from jax2d.sweeps import CONST_ROWS
 
 def test_contact_schedule_lists_colours_with_a_point_in_any_scene_in_order():
     C, K, B = 6, 3, 4
-    const = np.zeros((len(CONST_ROWS), C, K, B), np.float32)
-    const[CONST_ROWS.index("nmass1"), 5, 2, 3] = 0.5  # colour 5: point 1 of one slot, in the last scene only
-    const[CONST_ROWS.index("nmass0"), 2, 0, 0] = 1.0
-    const[CONST_ROWS.index("tmass0"), 4, 0, 0] = 1.0  # a tangent mass alone is not a point
+    const = np.zeros((C, len(CONST_ROWS), K, B), np.float32)
+    const[5, CONST_ROWS.index("nmass1"), 2, 3] = 0.5  # colour 5: point 1 of one slot, in the last scene only
+    const[2, CONST_ROWS.index("nmass0"), 0, 0] = 1.0
+    const[4, CONST_ROWS.index("tmass0"), 0, 0] = 1.0  # a tangent mass alone is not a point
     plan = sweeps.schedule(jnp.asarray(const))
     assert int(plan.count) == 2
     assert np.asarray(plan.order)[:2].tolist() == [2, 5]

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The GPU session's measurements in one call of at most 8 minutes (issue 36): tests/test_gpu.py, `kinetix bench
 # env|engine` at s, m, l x 256, 2,048, 16,384 and 65,536 (and the control-flow A/B at 2,048, profiled),
-# `kinetix bench train` at 1,024 and 8,192 envs, then the general agent's curriculum runs, resumed, until the
-# budget ends. Results: $OUT/results.jsonl, $OUT/gpu.png, $OUT/tests.log, $OUT/log.txt, and two archives
-# (the resumed runs, compacted; worker, training and profile logs). kinetix/bench/gpu.py says how it is planned.
+# `kinetix bench train` at 1,024 and 8,192 envs, then the general agent's run (issue 33's 200M-step SFL run,
+# kinetix/agents/general/run; TRAIN_RUNS names others), resumed, until the budget ends. Results:
+# $OUT/results.jsonl, $OUT/gpu.png, $OUT/tests.log, $OUT/log.txt, and two archives (the resumed runs, compacted;
+# worker, training and profile logs). kinetix/bench/gpu.py says how it is planned.
 #
 #   OUT=/tmp/gpu-out bash bench/gpu.sh             # on the GPU machine (JAX with CUDA installed)
 #   OUT=/tmp/gpu-out bash bench/gpu.sh --quick     # the dry run on a CPU: small batches, same code
@@ -35,7 +36,7 @@ export KINETIX_JAX_CACHE=${KINETIX_JAX_CACHE:-$(mktemp -d /tmp/kinetix-gpu-cache
 LOGS=$(mktemp -d /tmp/kinetix-gpu-logs.XXXX)
 RUNS=()  # TRAIN=0: no general-agent training at the end
 if [[ "${TRAIN:-1}" != 0 ]]; then
-  for curriculum in dr plr sfl; do RUNS+=("kinetix/agents/general/curricula/$curriculum"); done
+  read -ra RUNS <<<"${TRAIN_RUNS:-kinetix/agents/general/run}"
 fi
 {
   date -u; git log -1 --format='commit %H %s' 2>/dev/null || true
@@ -45,7 +46,7 @@ fi
     "${QUICK[@]}" --workers "$WORKERS" --budget "${BUDGET:-470}" --tests "$TEST_ARGS" --train "${RUNS[@]}" "$@"
   if (( ${#RUNS[@]} )); then
     for run in "${RUNS[@]}"; do "$PY" -m kinetix.agents.resume compact "$run" || echo "compact $run failed"; done
-    tar czf "$OUT/curricula.tar.gz" kinetix/agents/general/curricula
+    tar czf "$OUT/runs.tar.gz" "${RUNS[@]}"
   fi
   # The logs without the raw traces (16 MB per file comes back at most); the profiles' summaries are in results.
   tar czf "$OUT/logs.tar.gz" --exclude='*.xplane.pb' -C "$LOGS" .

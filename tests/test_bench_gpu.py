@@ -16,7 +16,9 @@ def test_the_plan_covers_the_issue_grid_with_the_goal_batches_first():
     assert all(job.size == "m" for job in grid[-8:])
     assert [(job.size, job.batch) for job in train] == [("m", 1024), ("m", 8192)]
     assert {job.control_flow for job in ab} == {"skip", "fixed", None}
-    assert [job.flags for job in ab if job.flags] == list(gpu.FLAG_VARIANTS)
+    # each XLA-flag variant at env s and env l, beside the grid's env s and l at the same batch
+    assert [(job.flags, job.what, job.size, job.batch) for job in ab if job.flags] == [
+        (flags, "env", size, gpu.AB_BATCH) for flags in gpu.FLAG_VARIANTS for size in "sl"]
     assert gpu.plan(quick=False, flows=False, train=False)[0] == [job for job in ab if job.flags]
     assert gpu.plan(quick=False, train=False)[2] == []
 
@@ -26,7 +28,7 @@ def test_each_scan_is_long_enough_and_the_names_tell_the_variants_apart():
         assert 25_000 <= batch * gpu.rollout_steps(batch) <= 700_000 and gpu.rollout_steps(batch) >= 10
     names = [job.name for job in gpu.plan(quick=False)[0]]
     assert len(set(names)) == len(names)
-    assert "env s 2048+graphs" in names and "env s 2048/fixed" in names
+    assert "env s 2048+concurrent" in names and "env l 2048+region" in names and "env s 2048/fixed" in names
 
 
 def test_the_table_compares_with_the_reference_only_where_there_is_one():

@@ -36,8 +36,6 @@ import sys
 import time
 from pathlib import Path
 
-from jax2d.compiling import GPU_COMMAND_BUFFERS
-
 SIZES = ("s", "m", "l")
 BATCHES = (256, 2048, 16384, 65536)
 TRAIN_ENVS = (1024, 8192)
@@ -45,11 +43,14 @@ TRAIN_SIZE = "m"  # the size of the earlier H100 PPO figures (86k env steps/s at
 QUICK_BATCHES = (16, 64)
 QUICK_TRAIN_ENVS = (16,)
 AB_BATCH = 2048  # the issue's furthest-behind point (s at 2,048), and l beside it
-# XLA flags tried in the A/B, each in processes of their own (XLA reads XLA_FLAGS once per process). "graphs":
-# loops and conditionals inside CUDA graphs too (command buffers; by default XLA puts only fusions and library
-# calls in them), so that a loop's iterations need not each be launched from the host. The first GPU call
-# measured it this way, and jax2d.compiling now asks for it per computation (COMPILER_OPTIONS).
-FLAG_VARIANTS = {"graphs": f"--xla_gpu_enable_command_buffer={GPU_COMMAND_BUFFERS}"}
+# XLA flags tried in the A/B, each in processes of their own (XLA reads XLA_FLAGS once per process), on top of
+# what jax2d.compiling asks for per computation (loops and conditionals inside CUDA graphs, which took env s 2,048
+# from 470k to 1.02M steps/s on an H200; docs/gpu.md). With graphs, one env step is about 1,100 tiny kernels
+# replayed one after another; these let the graph run independent ones side by side instead.
+FLAG_VARIANTS = {
+    "concurrent": "--xla_gpu_command_buffer_scheduling_mode=CONCURRENT",  # the graph's nodes ordered by data only
+    "region": "--xla_gpu_graph_enable_concurrent_region=true",
+}
 # The issue's reference table (public Kinetix 3.0.2 with Jax2D 1.0.1 on one H100, JAX 0.11.2), steps/s.
 REFERENCE_H100 = {
     ("env", "l"): {256: 24.4e3, 2048: 147e3, 16384: 331e3},
@@ -86,15 +87,15 @@ def rollout_steps(batch: int) -> int:
 
 def plan(quick: bool, flows: bool = True, train: bool = True) -> tuple[list[Job], list[Job], list[Job]]:
     """(the A/B, the grid, the PPO chunks). The A/B at batch 2,048: with `flows`, skip against fixed control
-    flow (SolverConfig.control_flow) for env and engine s and env l; always env s with XLA_FLAGS asking for
-    what jax2d.compiling's GPU option asks for, which should measure the same as the grid's env s (else the
-    option did not take)."""
+    flow (SolverConfig.control_flow) for env and engine s and env l; always env s and l with each of
+    FLAG_VARIANTS' XLA flags, against the grid's env s and l at the same batch."""
     batches = QUICK_BATCHES if quick else BATCHES
     ab_batch = QUICK_BATCHES[-1] if quick else AB_BATCH
     ab_sizes = (("s", ("env", "engine")),) if quick else (("s", ("env", "engine")), ("l", ("env",)))
     ab = [Job(what, size, ab_batch, rollout_steps(ab_batch), flow)
           for size, whats in ab_sizes for what in whats for flow in ("skip", "fixed")] if flows else []
-    ab += [Job("env", "s", ab_batch, rollout_steps(ab_batch), None, flags) for flags in FLAG_VARIANTS]
+    ab += [Job("env", size, ab_batch, rollout_steps(ab_batch), None, flags) for flags in FLAG_VARIANTS
+           for size in ("s",) + (() if quick else ("l",))]
     # The goal's batches first (2,048 and 16,384 at s and l), so that a call cut short still has them.
     order = sorted(batches, key=lambda b: (b not in (2048, 16384), b not in (256,), b))
     grid = [Job(what, size, batch, rollout_steps(batch)) for batch in order for size in ("s", "l")
@@ -268,11 +269,12 @@ def profile(run, directory: Path, steps: int) -> dict:
 
 # ---------------------------------------------------------------- stage 3: the general agent's runs
 
-def start_training(runs: list[str], steps: int, log_dir: Path) -> list[subprocess.Popen]:
+def start_training(runs: list[str], steps: int | None, log_dir: Path) -> list[subprocess.Popen]:
     procs = []
     for run in runs:
-        cmd = [sys.executable, "-m", "kinetix", "train", "--resume", run, "--steps", str(steps),
-               "--checkpoint-every", "20"]
+        cmd = [sys.executable, "-m", "kinetix", "train", "--resume", run, "--checkpoint-every", "20"]
+        if steps:  # else the run's own total (a new one would change an annealed learning rate's schedule)
+            cmd += ["--steps", str(steps)]
         procs.append(subprocess.Popen(cmd, stdout=open(log_dir / f"train-{Path(run).name}.log", "w"),
                                       stderr=subprocess.STDOUT, start_new_session=False))
     return procs
@@ -330,7 +332,7 @@ def table(results: list[dict]) -> str:
         ref = REFERENCE_H100.get((r["what"], r["size"]), {}).get(r["batch"])
         ratio = f"{r['steps_per_s'] / ref:7.2f}" if ref else f"{'':>7}"
         compile_s = r.get("compile_s")
-        flags = "  +graphs" if r.get("xla_flags") else ""
+        flags = f"  {r['xla_flags']}" if r.get("xla_flags") else ""
         lines.append(f"{r['what']:<7}{r['size']:<5}{r['batch']:>7} {r['control_flow']:<6}{r['steps_per_s']:>13,.0f}"
                      f"{ratio}{compile_s if compile_s is not None else '-':>10}{flags}")
     for r in results:
@@ -478,7 +480,8 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--no-train-bench", action="store_true", help="leave `kinetix bench train`'s chunks out")
     run.add_argument("--tests", default="", help="pytest's arguments, one string, run beside stage 1")
     run.add_argument("--train", nargs="*", default=[], help="run directories to resume (kinetix train --resume)")
-    run.add_argument("--train-steps", type=int, default=5_000_000, help="--steps for the resumed runs")
+    run.add_argument("--train-steps", type=int, default=None,
+                     help="--steps for the resumed runs (default: each run's own total)")
     worker = sub.add_parser("compile", help="(internal) compile jobs into the persistent cache")
     worker.add_argument("--jobs", required=True)
     worker.add_argument("--shared")

@@ -34,11 +34,16 @@ from jax._src import xla_bridge as _xla_bridge  # backends(): which platforms th
 # (command buffers) with the kernels around them: XLA's default puts only fusions and library calls there, and
 # the step's loops over colours and joints then launched every iteration's kernels from the host and read its
 # trip test back. Measured on one H200 (26 Nov 2026, bench/gpu.sh, batch 2,048): env s 470k -> 995k steps/s,
-# engine s 1.19M -> 2.30M, env l 234k -> 436k.
+# engine s 1.19M -> 2.30M, env l 234k -> 436k. A step is then about 1,100 kernels of a few microseconds, each
+# waiting for the one before; CONCURRENT scheduling orders the graph's nodes by their data alone, so independent
+# kernels (the shapes' and joints' stages, say) run side by side. Measured on one H200 (27 Nov 2026, bench/gpu.sh,
+# two calls, batch 2,048, set through XLA_FLAGS): env s 937k-943k -> 1.10M steps/s (+16 %), env l 402k -> 460k
+# (+14 %), bitwise the same on a rerun (docs/gpu.md).
 GPU_COMMAND_BUFFERS = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
 COMPILER_OPTIONS: dict[str, Any] = {
     "xla_cpu_use_fusion_emitters": False,
     "xla_gpu_enable_command_buffer": GPU_COMMAND_BUFFERS,
+    "xla_gpu_command_buffer_scheduling_mode": "CONCURRENT",
 }
 # An option named with one of these prefixes exists only in those platforms' compilers. JAX names a GPU
 # device's platform "gpu" and its backend "cuda" or "rocm"; all three are accepted here.

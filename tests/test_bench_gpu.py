@@ -28,7 +28,7 @@ def test_each_scan_is_long_enough_and_the_names_tell_the_variants_apart():
         assert 25_000 <= batch * gpu.rollout_steps(batch) <= 700_000 and gpu.rollout_steps(batch) >= 10
     names = [job.name for job in gpu.plan(quick=False)[0]]
     assert len(set(names)) == len(names)
-    assert "env s 2048+concurrent" in names and "env l 2048+region" in names and "env s 2048/fixed" in names
+    assert "env s 2048+concurrent" in names and "env l 2048+concurrent" in names and "env s 2048/fixed" in names
 
 
 def test_the_table_compares_with_the_reference_only_where_there_is_one():

@@ -10,7 +10,8 @@ from jax2d import compiling
 from tests.jax2d import scenes
 
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-GPU_OPTIONS = {"xla_gpu_enable_command_buffer": compiling.GPU_COMMAND_BUFFERS}
+GPU_OPTIONS = {"xla_gpu_enable_command_buffer": compiling.GPU_COMMAND_BUFFERS,
+               "xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"}
 
 
 def test_an_option_the_compiler_refuses_is_left_out_with_a_warning() -> None:

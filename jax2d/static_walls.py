@@ -1,6 +1,7 @@
 """Continuous collision and walls at the end of a step: nothing gets through a body, nor into a wall (issues 28, 35).
 
-Two position stages run after the joint projection (step.py's _solve), on batch-last arrays:
+Three position stages run after the joint projection (step.py's _solve), on batch-last arrays, in the order
+sweep back, push out, sweep back, centre out:
 
     sweep back      continuous collision for a body that moved farther in the step than the speculative
                     margin covered (a light body sent off by a heavy fast one): its core disc (CORE_FRACTION
@@ -17,8 +18,10 @@ Two position stages run after the joint projection (step.py's _solve), on batch-
                     along the step's contact normals, to that depth (at most MAX_PUSH per point and sweep). The joint
                     projection solves all joints exactly but ignores contacts, so motors at full power pushed
                     a box 20 cm into a floor in one step (tests/jax2d/accuracy.crowded_walls).
+    centre out      a dynamic body whose centre still ends inside a static polygon goes out through the face
+                    it came in by, with every body its joints connect it to, by one translation (centre_out).
 
-Both are skipped, batch-wide (lax.cond), in steps where no scene of the batch needs them.
+Each is skipped, batch-wide (lax.cond), in steps where no scene of the batch needs it.
 """
 
 from __future__ import annotations
@@ -54,6 +57,9 @@ PUSH_TOLERANCE = 2.0
 PUSH_SWEEPS = 1
 PUSH_ROUNDS = 10
 MAX_PUSH = 0.2
+# centre_out leaves a centre this many linear slops outside the face it goes out through.
+CENTRE_MARGIN = 0.2
+CENTRE_ROUNDS = 2
 _FAR = 1e9  # the separation given to points that the push-out leaves alone
 
 
@@ -67,6 +73,8 @@ class Shapes(NamedTuple):
     active: jax.Array  # (N, *batch)
     core: jax.Array  # (M, *batch) the swept disc's radius; 0 for static bodies and the padding
     reach: jax.Array  # (M, *batch) how far the speculative margin covered each body's travel (m)
+    dynamic: jax.Array  # (M, *batch) active and movable (False for the padding)
+    static: jax.Array  # (P, *batch) active polygons that never move
 
 
 def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
@@ -83,7 +91,9 @@ def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
     dynamic = b.active & (b.inv_mass > 0)
     pad = [(0, M - b.active.shape[0])] + [(0, 0)] * (b.active.ndim - 1)
     core = jnp.pad(jnp.where(dynamic, CORE_FRACTION * jnp.maximum(inner, 0.0), 0.0), pad)
-    return Shapes(v, b.n_vertices, b.radius, b.collision_mode, b.active, core, jnp.pad(reach + speculative, pad))
+    P = v.shape[0]
+    return Shapes(v, b.n_vertices, b.radius, b.collision_mode, b.active, core, jnp.pad(reach + speculative, pad),
+                  jnp.pad(dynamic, pad), b.active[:P] & (b.inv_mass[:P] == 0.0))
 
 
 def _used(V: int, n_vertices):
@@ -109,67 +119,70 @@ def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fixed: bool =
     the step's start (in the other's start pose) to where it is at the end (in its end pose), a straight
     segment there; a static body's two poses are the same.
     """
+    fast = _fast(s, pose0, pose)
+    return if_any(fixed, fast, lambda: _swept_back(s, joints, pose0, pose, fast), lambda: pose)  # (control.py)
+
+
+def _fast(s: Shapes, pose0: Pose, pose: Pose):
+    """(M, *batch) the bodies the sweep back looks at: only a body that went farther than the margin the narrow
+    phase kept its contacts in can have passed a body between two steps' contacts; and one that moved less
+    than its core cannot enter past it."""
     dx, dy = pose.x - pose0.x, pose.y - pose0.y
     travel = jnp.sqrt(dx * dx + dy * dy)
-    # Only a body that went farther than the margin the narrow phase kept its contacts in can have passed
-    # a body between two steps' contacts; and one that moved less than its core cannot enter past it.
-    fast = (s.core > 0.0) & (travel > s.reach) & (travel > s.core)
+    return (s.core > 0.0) & (travel > s.reach) & (travel > s.core)
 
-    def run():
-        P, V = s.vertices.shape[:2]
-        N = s.active.shape[0]
-        M = pose.x.shape[0]
-        mode = jnp.pad(s.collision_mode, [(0, M - N)] + [(0, 0)] * (s.collision_mode.ndim - 1))
-        active = jnp.pad(s.active, [(0, M - N)] + [(0, 0)] * (s.active.ndim - 1))
-        linked = joint_connected_batch_last(joints, M)  # includes each body itself
-        # (M body, M other, *batch)
-        may = modes_agree(mode[:, None], mode[None, :]) & ~linked & active[None, :] & fast[:, None]
-        r = s.core[:, None]
-        t = jnp.ones_like(pose.x)
-        if P:
-            def local(p):  # (M body, P polygon, *batch) each body's centre in each polygon's frame at pose p
-                cos, sin = jnp.cos(p.a[None, :P]), jnp.sin(p.a[None, :P])
-                rx, ry = p.x[:, None] - p.x[None, :P], p.y[:, None] - p.y[None, :P]
-                return cos * rx + sin * ry, -sin * rx + cos * ry
 
-            (x0, y0), (x1, y1) = local(pose0), local(pose)
-            qx, qy = x1 - x0, y1 - y0
-            vx, vy = s.vertices[:, :, 0], s.vertices[:, :, 1]  # (P, V, *batch), body frame
-            nxt = _next_vertex(s.vertices, s.n_vertices)
-            ex, ey = nxt[:, :, 0] - vx, nxt[:, :, 1] - vy
-            length = jnp.maximum(jnp.sqrt(ex * ex + ey * ey), 1e-9)
-            nx, ny = ey / length, -ex / length  # outward normals of a CCW polygon
-            offset = nx * vx + ny * vy  # (P, V, *batch): inside is n . x <= offset
-            used = _used(V, s.n_vertices)[None]  # (1, P, V, *batch)
-            # Every (body, polygon, edge): the segment x0 + t q against n . x <= offset + r.
-            num = offset[None] + r[:, :, None] - (nx[None] * x0[:, :, None] + ny[None] * y0[:, :, None])
-            den = nx[None] * qx[:, :, None] + ny[None] * qy[:, :, None]
-            entering, leaving = used & (den < 0.0), used & (den > 0.0)
-            ratio = num / jnp.where(den == 0.0, 1.0, den)
-            t_in = jnp.max(jnp.where(entering, ratio, 0.0), axis=2)
-            t_out = jnp.min(jnp.where(leaving, ratio, 1.0), axis=2)
-            outside = jnp.any(used & (num < 0.0), axis=2)  # the core starts outside the grown polygon
-            parallel_out = jnp.any(used & (den == 0.0) & (num < 0.0), axis=2)
-            hit = outside & ~parallel_out & (t_in <= t_out) & (t_in < 1.0) & may[:, :P]
-            t = jnp.minimum(t, jnp.min(jnp.where(hit, t_in, 1.0), axis=1))
-        C = N - P
-        if C:
-            R = s.radius[None]
-            fx, fy = pose0.x[:, None] - pose0.x[None, P:N], pose0.y[:, None] - pose0.y[None, P:N]
-            qx = pose.x[:, None] - pose.x[None, P:N] - fx
-            qy = pose.y[:, None] - pose.y[None, P:N] - fy
-            a = qx * qx + qy * qy
-            bq = 2.0 * (fx * qx + fy * qy)
-            cq = fx * fx + fy * fy - (R + r) ** 2
-            disc = bq * bq - 4.0 * a * cq
-            t_in = (-bq - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.maximum(2.0 * a, 1e-12)
-            hit = (cq > 0.0) & (disc >= 0.0) & (t_in >= 0.0) & (t_in < 1.0) & may[:, P:N]
-            t = jnp.minimum(t, jnp.min(jnp.where(hit, t_in, 1.0), axis=1))
-        back = t < 1.0  # (a lerp at t = 1 is not bitwise the end pose: a body's result would depend on its batch)
-        return Pose(jnp.where(back, pose0.x + t * dx, pose.x), jnp.where(back, pose0.y + t * dy, pose.y),
-                    jnp.where(back, pose0.a + t * (pose.a - pose0.a), pose.a))
+def _swept_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fast) -> Pose:
+    """sweep_back's work, for the bodies in `fast` (the others keep their pose, bitwise)."""
+    dx, dy = pose.x - pose0.x, pose.y - pose0.y
+    P, V = s.vertices.shape[:2]
+    N = s.active.shape[0]
+    M = pose.x.shape[0]
+    mode = jnp.pad(s.collision_mode, [(0, M - N)] + [(0, 0)] * (s.collision_mode.ndim - 1))
+    active = jnp.pad(s.active, [(0, M - N)] + [(0, 0)] * (s.active.ndim - 1))
+    linked = joint_connected_batch_last(joints, M)  # includes each body itself
+    # (M body, M other, *batch)
+    may = modes_agree(mode[:, None], mode[None, :]) & ~linked & active[None, :] & fast[:, None]
+    r = s.core[:, None]
+    t = jnp.ones_like(pose.x)
+    if P:
+        (x0, y0), (x1, y1) = _centre_in_frames(pose0, P), _centre_in_frames(pose, P)
+        qx, qy = x1 - x0, y1 - y0
+        vx, vy = s.vertices[:, :, 0], s.vertices[:, :, 1]  # (P, V, *batch), body frame
+        nxt = _next_vertex(s.vertices, s.n_vertices)
+        ex, ey = nxt[:, :, 0] - vx, nxt[:, :, 1] - vy
+        length = jnp.maximum(jnp.sqrt(ex * ex + ey * ey), 1e-9)
+        nx, ny = ey / length, -ex / length  # outward normals of a CCW polygon
+        offset = nx * vx + ny * vy  # (P, V, *batch): inside is n . x <= offset
+        used = _used(V, s.n_vertices)[None]  # (1, P, V, *batch)
+        # Every (body, polygon, edge): the segment x0 + t q against n . x <= offset + r.
+        num = offset[None] + r[:, :, None] - (nx[None] * x0[:, :, None] + ny[None] * y0[:, :, None])
+        den = nx[None] * qx[:, :, None] + ny[None] * qy[:, :, None]
+        entering, leaving = used & (den < 0.0), used & (den > 0.0)
+        ratio = num / jnp.where(den == 0.0, 1.0, den)
+        t_in = jnp.max(jnp.where(entering, ratio, 0.0), axis=2)
+        t_out = jnp.min(jnp.where(leaving, ratio, 1.0), axis=2)
+        outside = jnp.any(used & (num < 0.0), axis=2)  # the core starts outside the grown polygon
+        parallel_out = jnp.any(used & (den == 0.0) & (num < 0.0), axis=2)
+        hit = outside & ~parallel_out & (t_in <= t_out) & (t_in < 1.0) & may[:, :P]
+        t = jnp.minimum(t, jnp.min(jnp.where(hit, t_in, 1.0), axis=1))
+    C = N - P
+    if C:
+        R = s.radius[None]
+        fx, fy = pose0.x[:, None] - pose0.x[None, P:N], pose0.y[:, None] - pose0.y[None, P:N]
+        qx = pose.x[:, None] - pose.x[None, P:N] - fx
+        qy = pose.y[:, None] - pose.y[None, P:N] - fy
+        a = qx * qx + qy * qy
+        bq = 2.0 * (fx * qx + fy * qy)
+        cq = fx * fx + fy * fy - (R + r) ** 2
+        disc = bq * bq - 4.0 * a * cq
+        t_in = (-bq - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.maximum(2.0 * a, 1e-12)
+        hit = (cq > 0.0) & (disc >= 0.0) & (t_in >= 0.0) & (t_in < 1.0) & may[:, P:N]
+        t = jnp.minimum(t, jnp.min(jnp.where(hit, t_in, 1.0), axis=1))
+    back = t < 1.0  # (a lerp at t = 1 is not bitwise the end pose: a body's result would depend on its batch)
+    return Pose(jnp.where(back, pose0.x + t * dx, pose.x), jnp.where(back, pose0.y + t * dy, pose.y),
+                jnp.where(back, pose0.a + t * (pose.a - pose0.a), pose.a))
 
-    return if_any(fixed, fast, run, lambda: pose)  # fixed control flow: always (jax2d/control.py)
 
 
 def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const, impulses, plan, pose: Pose,
@@ -229,3 +242,142 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
 
     sep = depth(pose)
     return if_any(plan.fixed, sep < -allowed, functools.partial(run, pose, vel, sep), lambda: pose)
+
+
+def sweep_back_then_centre_out(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
+    """sweep_back, then centre_out, in one conditional on whether some scene needs either: the step's last
+    stage. Each conditional costs a step from a Python loop 10-20 us at l, taken or not (27 Nov 2026: centre_out
+    in a conditional of its own made l 0.366 -> 0.395 ms an env step); the test for each is cheap."""
+    if not s.vertices.shape[0]:  # no polygons, so no static polygon to be inside
+        return sweep_back(s, joints, pose0, pose, fixed)
+    fast = _fast(s, pose0, pose)
+    faces = _faces(s)
+    inside = _centres_inside(s, faces, pose)
+
+    def run():
+        swept = _swept_back(s, joints, pose0, pose, fast)
+        return _moved_out(s, faces, joints, pose0, swept, slop, fixed, CENTRE_ROUNDS)
+
+    return if_any(fixed, jnp.any(fast) | jnp.any(inside), run, lambda: pose)
+
+
+def centre_out(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
+    """Move a dynamic body whose centre ended the step strictly inside a static polygon it collides with out
+    through the face it came in by, to CENTRE_MARGIN slops outside it (issue 35's walls criterion).
+
+    The last stage, for what the others leave. In crowded scene 245 (actions key 3) a 16 g triangle welded to
+    two heavier bodies that motors at full power spin ends a step with its centre 25 cm deep in the floor: the
+    joint projection solves the welds exactly and ignores contacts, the push-out turns so light a body about
+    its centre rather than moving it, and the sweep back skips a body whose core starts inside.
+
+    - The face: the one the centre was farthest outside of at the step's start (its way in), else, for a
+      centre that started inside, the one it is nearest to now.
+    - The move: the centre's depth below that face and the margin, for the body and every dynamic body joined
+      to it by a chain of joints, by the same translation, so no joint opens (in an assembly with two such
+      bodies, the larger move). Moving the triangle alone opened its welds by 25 cm, and the next steps' joint
+      solve closed them with speeds that blew the scene apart.
+    - Velocities are kept: the next step's contacts take what points into the wall.
+    - A centre in two static polygons (a corner where the floor and a wall overlap) goes out of the deeper one,
+      then of the other: a second round runs where the first moved a body.
+
+    Each round runs, batch-wide, only in steps where some scene has a centre inside (jax2d/control.py);
+    testing for one is what it costs in every step.
+    """
+    return _moved_out(s, _faces(s), joints, pose0, pose, slop, fixed, CENTRE_ROUNDS)
+
+
+def _moved_out(s: Shapes, faces: _Faces, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool,
+               rounds: int) -> Pose:
+    """centre_out's rounds, each in a conditional on whether some centre is inside; a round runs only where
+    the one before moved a body."""
+    inside = _centres_inside(s, faces, pose)
+
+    def run():
+        moved = _move_out(s, faces, joints, pose0, pose, inside, slop)
+        return moved if rounds == 1 else _moved_out(s, faces, joints, pose0, moved, slop, fixed, rounds - 1)
+
+    return if_any(fixed, inside, run, lambda: pose)
+
+
+class _Faces(NamedTuple):
+    """The polygons' edges in their own frames, (P, V, *batch): start vertex, edge vector, which are used."""
+
+    vx: jax.Array
+    vy: jax.Array
+    ex: jax.Array
+    ey: jax.Array
+    used: jax.Array
+
+
+def _faces(s: Shapes) -> _Faces:
+    V = s.vertices.shape[1]
+    nxt = _next_vertex(s.vertices, s.n_vertices)
+    vx, vy = s.vertices[:, :, 0], s.vertices[:, :, 1]
+    return _Faces(vx, vy, nxt[:, :, 0] - vx, nxt[:, :, 1] - vy, _used(V, s.n_vertices))
+
+
+def _centre_in_frames(pose: Pose, P: int):
+    """(M body, P polygon, *batch) each body's centre in each polygon's frame."""
+    cos, sin = jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])
+    rx, ry = pose.x[:, None] - pose.x[None, :P], pose.y[:, None] - pose.y[None, :P]
+    return cos * rx + sin * ry, -sin * rx + cos * ry
+
+
+def _outside_by(f: _Faces, x, y):
+    """(M, P, V, *batch) how far each centre is right of (outside) each edge of a CCW polygon, times its length."""
+    return f.ex[None] * (f.vy[None] - y[:, :, None]) - f.ey[None] * (f.vx[None] - x[:, :, None])
+
+
+def _centres_inside(s: Shapes, f: _Faces, pose: Pose):
+    """(M, P, *batch) dynamic centres strictly inside a static polygon they collide with, as
+    tests/jax2d/accuracy._inside_static counts them (bodies joined to the polygon excepted later)."""
+    P, V = f.vx.shape[:2]
+    M = pose.x.shape[0]
+    x, y = _centre_in_frames(pose, P)
+    mode = jnp.pad(s.collision_mode, [(0, M - s.collision_mode.shape[0])] + [(0, 0)] * (s.collision_mode.ndim - 1))
+    inside = s.static[None] & s.dynamic[:, None] & modes_agree(mode[:, None], mode[None, :P])
+    # Edge by edge, not a reduction over the short vertex axis: this test runs in every step, and at batch 1
+    # XLA's CPU reductions (library calls) cost more than the arithmetic (l from a Python loop: +33 us a step
+    # with jnp.all, 27 Nov 2026).
+    for k in range(V):
+        ahead = f.ex[None, :, k] * (f.vy[None, :, k] - y) - f.ey[None, :, k] * (f.vx[None, :, k] - x)
+        inside = inside & ((ahead < 0.0) | ~f.used[None, :, k])
+    return inside
+
+
+def _move_out(s: Shapes, f: _Faces, joints: Joints, pose0: Pose, pose: Pose, inside, slop) -> Pose:
+    """One round of centre_out: each body (with its assembly) out of the static polygon it is deepest in."""
+    P, V = f.vx.shape[:2]
+    M = pose.x.shape[0]
+    connected = joint_connected_batch_last(joints, M)  # (M, M, *batch), each body with itself
+    hit = inside & ~connected[:, :P]
+    length = jnp.maximum(jnp.sqrt(f.ex * f.ex + f.ey * f.ey), 1e-9)[None]
+    nx, ny = f.ey[None] / length, -f.ex[None] / length  # outward normals, polygon frame
+    used = f.used[None]
+    before = jnp.where(used, _outside_by(f, *_centre_in_frames(pose0, P)) / length, -jnp.inf)  # signed distances
+    now = jnp.where(used, _outside_by(f, *_centre_in_frames(pose, P)) / length, -jnp.inf)
+    came_in = jnp.max(before, axis=2, keepdims=True) >= 0.0
+    choice = jnp.argmax(jnp.where(came_in, before, now), axis=2)[:, :, None]
+    face = jnp.arange(V).reshape((1, 1, V) + (1,) * (pose.x.ndim - 1)) == choice
+    depth = -jnp.sum(jnp.where(face, now, 0.0), axis=2)  # (M, P, *batch) >= 0 for a centre inside
+    lift = jnp.where(hit, depth + CENTRE_MARGIN * slop, 0.0)
+    fnx, fny = jnp.sum(jnp.where(face, nx, 0.0), axis=2), jnp.sum(jnp.where(face, ny, 0.0), axis=2)
+    cos, sin = jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])
+    wx, wy = cos * fnx - sin * fny, sin * fnx + cos * fny  # the face's outward normal in the world
+    # Per body, the polygon it is deepest in.
+    pick = _first_of(lift == jnp.max(lift, axis=1, keepdims=True), axis=1) & hit
+    dx = jnp.sum(jnp.where(pick, lift * wx, 0.0), axis=1)  # (M, *batch)
+    dy = jnp.sum(jnp.where(pick, lift * wy, 0.0), axis=1)
+    # Per body, the largest move among the bodies of its assembly (connected), applied to the dynamic ones.
+    size = jnp.where(jnp.any(pick, axis=1), dx * dx + dy * dy, -1.0)
+    lead = jnp.where(connected, size[:, None], -2.0)  # (M member, M body, *batch)
+    chosen = _first_of((lead == jnp.max(lead, axis=0, keepdims=True)) & (lead >= 0.0), axis=0)
+    moved = jnp.any(chosen, axis=0) & s.dynamic
+    gx = jnp.sum(jnp.where(chosen, dx[:, None], 0.0), axis=0)
+    gy = jnp.sum(jnp.where(chosen, dy[:, None], 0.0), axis=0)
+    return Pose(jnp.where(moved, pose.x + gx, pose.x), jnp.where(moved, pose.y + gy, pose.y), pose.a)
+
+
+def _first_of(mask, axis: int):
+    """mask with only its first true element along `axis` kept."""
+    return mask & (jnp.cumsum(mask, axis=axis) == 1)

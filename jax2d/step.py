@@ -17,7 +17,9 @@
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
                             (joint_solver.project)
     static walls            fast bodies swept back to where they enter a static body; bodies pushed out of
-                            static ones beyond 2 slops, alternating with the projection (static_walls)
+                            static ones beyond 2 slops, alternating with the projection; the sweep back again;
+                            a centre still inside a static body taken out the way it came, with its assembly
+                            (static_walls)
     store                   impulses for the next step; clamp and NaN guard (store; SimState.frozen counts
                             the bodies it froze)
 
@@ -342,7 +344,9 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
         # Again: the push-out's joint projections move bodies too, and one that had no contact with a wall at
         # the step's start has no point to be pushed out by (crowded scene 58, actions key 4, step 1063: a light
         # triangle welded to a motor hub went from 15 cm above the floor to 3.5 cm into it).
-        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, fixed)
+        # and last, a centre still inside a static body goes out the way it came (static_walls.centre_out)
+        pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.joints, loop.pose0, pose, loop.linear_slop,
+                                                       fixed)
     return pose, vel, cimp, jimp
 
 

@@ -1,0 +1,71 @@
+"""jax2d.static_walls.centre_out, the walls' last stage, called on its own (one scene, batch-last arrays)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jax2d
+from jax2d import scene, static_walls
+from jax2d.math2d import Pose
+
+SLOP = jax2d.SimParams().linear_slop
+
+
+def _corner_scene():
+    """A floor (top at y = 0) and a left wall overlapping it at the corner (x in [-2.5, -2], y in [-0.5, 0]);
+    box A with its centre 5 cm in the floor and box B welded on top of it; box D jointed to nothing, its
+    centre in the left wall, 0.1 m from its left face and 0.4 m from its right one; circle C with its centre
+    in the corner, inside both."""
+    state = jax2d.empty_state(jax2d.Capacity(polygons=6, circles=2, joints=2, thrusters=1))
+    state, floor = scene.add_rectangle(state, (0.0, -0.25), 6.0, 0.5, fixed=True)
+    state, wall = scene.add_rectangle(state, (-2.25, 1.0), 0.5, 3.0, fixed=True)
+    state, a = scene.add_rectangle(state, (0.3, -0.05), 0.3, 0.3)
+    state, b = scene.add_rectangle(state, (0.3, 0.25), 0.3, 0.3)
+    state, d = scene.add_rectangle(state, (-2.4, 1.0), 0.2, 0.2)
+    state, c = scene.add_circle(state, (-2.05, -0.1), 0.1)
+    state, _ = scene.add_fixed_joint(state, a, b, (0.3, 0.1))
+    return state, dict(floor=floor, wall=wall, a=a, b=b, d=d, c=c)
+
+
+def _centre_out(state: jax2d.SimState, start: np.ndarray) -> np.ndarray:
+    """centre_out on the state's poses as the step's end, `start` (N, 2) as its start; the new centres (N, 2)."""
+    last = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)  # batch-last, a batch of one
+    b = last.bodies
+    N = b.active.shape[0]
+    shapes = static_walls.shapes(b, jnp.zeros((N, 1)), jnp.full((1,), 0.04), N)
+    pose = Pose(b.position[:, 0], b.position[:, 1], b.angle)
+    pose0 = Pose(jnp.asarray(start[:, 0])[:, None], jnp.asarray(start[:, 1])[:, None], b.angle)
+    slop = jnp.full((1,), SLOP)
+    out = jax2d.jit(lambda p0, p: static_walls.centre_out(shapes, last.joints, p0, p, slop))(pose0, pose)
+    return np.stack([np.asarray(out.x)[:, 0], np.asarray(out.y)[:, 0]], axis=1)
+
+
+def test_a_centre_goes_out_the_way_it_came_in_and_its_welded_partner_goes_with_it() -> None:
+    state, i = _corner_scene()
+    start = np.asarray(state.bodies.position).copy()
+    start[i["a"]] = (0.25, 0.2)  # A came down from above the floor
+    start[i["d"]] = (-1.9, 1.05)  # D came in through the wall's right face
+    start[i["c"]] = (-2.05, -0.1)  # C started where it is: it leaves through the face it is nearest to now
+    end = _centre_out(state, start)
+    before = np.asarray(state.bodies.position)
+    # A's centre is CENTRE_MARGIN slops above the floor; B moved with it, so the weld did not open.
+    np.testing.assert_allclose(end[i["a"]], (0.3, static_walls.CENTRE_MARGIN * SLOP), atol=1e-6)
+    np.testing.assert_allclose(end[i["b"]] - before[i["b"]], end[i["a"]] - before[i["a"]], atol=1e-6)
+    # D came in through the wall's right face (x = -2) and leaves through it, not through the nearer left one.
+    np.testing.assert_allclose(end[i["d"]], (-2.0 + static_walls.CENTRE_MARGIN * SLOP, 1.0), atol=1e-6)
+    # C, in both the floor and the wall: out of the deeper one, then the other (two rounds).
+    assert end[i["c"]][0] > -2.0 and end[i["c"]][1] > 0.0
+    # Static bodies never move.
+    np.testing.assert_array_equal(end[[i["floor"], i["wall"]]], before[[i["floor"], i["wall"]]])
+
+
+def test_a_centre_outside_every_static_body_is_left_where_it_is() -> None:
+    state, i = _corner_scene()
+    position = np.asarray(state.bodies.position).copy()
+    position[[i["a"], i["b"], i["d"], i["c"]]] = [(0.3, 0.2), (0.3, 0.5), (-1.5, 1.0), (-1.5, 0.5)]
+    state = dataclasses.replace(state, bodies=dataclasses.replace(state.bodies, position=jnp.asarray(position)))
+    np.testing.assert_array_equal(_centre_out(state, position), position)

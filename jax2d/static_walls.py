@@ -246,8 +246,9 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
 
 def sweep_back_then_centre_out(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
     """sweep_back, then centre_out, in one conditional on whether some scene needs either: the step's last
-    stage. Each conditional costs a step from a Python loop 10-20 us at l, taken or not (27 Nov 2026: centre_out
-    in a conditional of its own made l 0.366 -> 0.395 ms an env step); the test for each is cheap."""
+    stage. On the CPU the conditional costs a step from a Python loop about 27 us at l whether it is taken or not
+    (the centre test itself about 1 us; docs/engine.md, 27 Nov 2026); one conditional for both stages measured the
+    same as one each."""
     if not s.vertices.shape[0]:  # no polygons, so no static polygon to be inside
         return sweep_back(s, joints, pose0, pose, fixed)
     fast = _fast(s, pose0, pose)
@@ -336,9 +337,7 @@ def _centres_inside(s: Shapes, f: _Faces, pose: Pose):
     x, y = _centre_in_frames(pose, P)
     mode = jnp.pad(s.collision_mode, [(0, M - s.collision_mode.shape[0])] + [(0, 0)] * (s.collision_mode.ndim - 1))
     inside = s.static[None] & s.dynamic[:, None] & modes_agree(mode[:, None], mode[None, :P])
-    # Edge by edge, not a reduction over the short vertex axis: this test runs in every step, and at batch 1
-    # XLA's CPU reductions (library calls) cost more than the arithmetic (l from a Python loop: +33 us a step
-    # with jnp.all, 27 Nov 2026).
+    # Edge by edge (jnp.all over the vertex axis, written out): the test runs in every step.
     for k in range(V):
         ahead = f.ex[None, :, k] * (f.vy[None, :, k] - y) - f.ey[None, :, k] * (f.vx[None, :, k] - x)
         inside = inside & ((ahead < 0.0) | ~f.used[None, :, k])

@@ -86,3 +86,14 @@ def test_walls_hold_against_motors_and_thrusters_at_full_power(seed, first_scene
     print(f"\n[crowded walls 16 x 500] {result['steps_inside']} steps with a centre inside a static body "
           f"(scenes {result['scenes_inside']}); bodies frozen by the guard {result['frozen']}")
     assert result["steps_inside"] == 0 and result["frozen"] == 0
+
+
+@pytest.mark.slow
+def test_walls_hold_where_motors_pressed_a_welded_triangle_into_the_floor():
+    """Crowded scenes 192-255 with actions key 3, 64 x 2,000 steps (the batch of the runs that found it, since
+    a chaotic trajectory depends on its program): in scene 245 a 16 g triangle welded to two motor-spun bodies
+    ended 7 steps with its centre in the floor, once 25 cm deep, until static_walls.centre_out (issue 35)."""
+    result = accuracy.crowded_walls(64, 2000, seed=3, first_scene=192)
+    print(f"\n[crowded walls 192-255, key 3] {result['steps_inside']} steps with a centre inside a static body "
+          f"(scenes {result['scenes_inside']}); bodies frozen by the guard {result['frozen']}")
+    assert result["steps_inside"] == 0 and result["frozen"] == 0

@@ -80,14 +80,10 @@ class Shapes(NamedTuple):
 def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
     """Shapes from batch-last bodies; reach: (N, *batch) narrow_phase.step_reach; speculative: (*batch)."""
     v = b.vertices  # (P, V, 2, *batch)
-    V = v.shape[1]
-    nxt = _next_vertex(v, b.n_vertices)
-    ex, ey = nxt[:, :, 0] - v[:, :, 0], nxt[:, :, 1] - v[:, :, 1]
-    length = jnp.sqrt(ex * ex + ey * ey)
+    f = _faces(v, b.n_vertices)
     # Distance from the centre of mass (the frame's origin) to each edge's line: cross(v, e) / |e| (CCW).
-    dist = (v[:, :, 0] * ey - v[:, :, 1] * ex) / jnp.maximum(length, 1e-9)
-    used = _used(V, b.n_vertices)
-    inner = jnp.concatenate([jnp.min(jnp.where(used, dist, jnp.inf), axis=1), b.radius])
+    dist = (f.vx * f.ey - f.vy * f.ex) / f.length
+    inner = jnp.concatenate([jnp.min(jnp.where(f.used, dist, jnp.inf), axis=1), b.radius])
     dynamic = b.active & (b.inv_mass > 0)
     pad = [(0, M - b.active.shape[0])] + [(0, 0)] * (b.active.ndim - 1)
     core = jnp.pad(jnp.where(dynamic, CORE_FRACTION * jnp.maximum(inner, 0.0), 0.0), pad)
@@ -135,7 +131,7 @@ def _fast(s: Shapes, pose0: Pose, pose: Pose):
 def _swept_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fast) -> Pose:
     """sweep_back's work, for the bodies in `fast` (the others keep their pose, bitwise)."""
     dx, dy = pose.x - pose0.x, pose.y - pose0.y
-    P, V = s.vertices.shape[:2]
+    P = s.vertices.shape[0]
     N = s.active.shape[0]
     M = pose.x.shape[0]
     mode = jnp.pad(s.collision_mode, [(0, M - N)] + [(0, 0)] * (s.collision_mode.ndim - 1))
@@ -148,13 +144,10 @@ def _swept_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fast) -> Pos
     if P:
         (x0, y0), (x1, y1) = _centre_in_frames(pose0, P), _centre_in_frames(pose, P)
         qx, qy = x1 - x0, y1 - y0
-        vx, vy = s.vertices[:, :, 0], s.vertices[:, :, 1]  # (P, V, *batch), body frame
-        nxt = _next_vertex(s.vertices, s.n_vertices)
-        ex, ey = nxt[:, :, 0] - vx, nxt[:, :, 1] - vy
-        length = jnp.maximum(jnp.sqrt(ex * ex + ey * ey), 1e-9)
-        nx, ny = ey / length, -ex / length  # outward normals of a CCW polygon
-        offset = nx * vx + ny * vy  # (P, V, *batch): inside is n . x <= offset
-        used = _used(V, s.n_vertices)[None]  # (1, P, V, *batch)
+        f = _faces(s.vertices, s.n_vertices)  # (P, V, *batch), body frame
+        nx, ny = f.nx, f.ny
+        offset = nx * f.vx + ny * f.vy  # (P, V, *batch): inside is n . x <= offset
+        used = f.used[None]  # (1, P, V, *batch)
         # Every (body, polygon, edge): the segment x0 + t q against n . x <= offset + r.
         num = offset[None] + r[:, :, None] - (nx[None] * x0[:, :, None] + ny[None] * y0[:, :, None])
         den = nx[None] * qx[:, :, None] + ny[None] * qy[:, :, None]
@@ -252,7 +245,7 @@ def sweep_back_then_centre_out(s: Shapes, joints: Joints, pose0: Pose, pose: Pos
     if not s.vertices.shape[0]:  # no polygons, so no static polygon to be inside
         return sweep_back(s, joints, pose0, pose, fixed)
     fast = _fast(s, pose0, pose)
-    faces = _faces(s)
+    faces = _faces(s.vertices, s.n_vertices)
     inside = _centres_inside(s, faces, pose)
 
     def run():
@@ -284,7 +277,7 @@ def centre_out(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: 
     Each round runs, batch-wide, only in steps where some scene has a centre inside (jax2d/control.py);
     testing for one is what it costs in every step.
     """
-    return _moved_out(s, _faces(s), joints, pose0, pose, slop, fixed, CENTRE_ROUNDS)
+    return _moved_out(s, _faces(s.vertices, s.n_vertices), joints, pose0, pose, slop, fixed, CENTRE_ROUNDS)
 
 
 def _moved_out(s: Shapes, faces: _Faces, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool,
@@ -301,20 +294,27 @@ def _moved_out(s: Shapes, faces: _Faces, joints: Joints, pose0: Pose, pose: Pose
 
 
 class _Faces(NamedTuple):
-    """The polygons' edges in their own frames, (P, V, *batch): start vertex, edge vector, which are used."""
+    """The polygons' edges in their own frames, (P, V, *batch): start vertex, edge vector, its length (at
+    least 1e-9), the outward unit normal of a CCW polygon, and which edges are used. Every stage here takes
+    its edge geometry from this one place."""
 
     vx: jax.Array
     vy: jax.Array
     ex: jax.Array
     ey: jax.Array
+    length: jax.Array
+    nx: jax.Array
+    ny: jax.Array
     used: jax.Array
 
 
-def _faces(s: Shapes) -> _Faces:
-    V = s.vertices.shape[1]
-    nxt = _next_vertex(s.vertices, s.n_vertices)
-    vx, vy = s.vertices[:, :, 0], s.vertices[:, :, 1]
-    return _Faces(vx, vy, nxt[:, :, 0] - vx, nxt[:, :, 1] - vy, _used(V, s.n_vertices))
+def _faces(vertices, n_vertices) -> _Faces:
+    """_Faces of polygons' vertices (P, V, 2, *batch) and vertex counts (P, *batch)."""
+    nxt = _next_vertex(vertices, n_vertices)
+    vx, vy = vertices[:, :, 0], vertices[:, :, 1]
+    ex, ey = nxt[:, :, 0] - vx, nxt[:, :, 1] - vy
+    length = jnp.maximum(jnp.sqrt(ex * ex + ey * ey), 1e-9)
+    return _Faces(vx, vy, ex, ey, length, ey / length, -ex / length, _used(vertices.shape[1], n_vertices))
 
 
 def _centre_in_frames(pose: Pose, P: int):
@@ -350,8 +350,7 @@ def _move_out(s: Shapes, f: _Faces, joints: Joints, pose0: Pose, pose: Pose, ins
     M = pose.x.shape[0]
     connected = joint_connected_batch_last(joints, M)  # (M, M, *batch), each body with itself
     hit = inside & ~connected[:, :P]
-    length = jnp.maximum(jnp.sqrt(f.ex * f.ex + f.ey * f.ey), 1e-9)[None]
-    nx, ny = f.ey[None] / length, -f.ex[None] / length  # outward normals, polygon frame
+    length, nx, ny = f.length[None], f.nx[None], f.ny[None]  # outward normals, polygon frame
     used = f.used[None]
     before = jnp.where(used, _outside_by(f, *_centre_in_frames(pose0, P)) / length, -jnp.inf)  # signed distances
     now = jnp.where(used, _outside_by(f, *_centre_in_frames(pose, P)) / length, -jnp.inf)

@@ -28,6 +28,8 @@ from kinetix.agents.networks import ActorCritic
 from kinetix.env import KinetixEnv
 
 GENERAL_DIR = Path(__file__).resolve().parent / "general"
+# Specialists shipped for the project's own levels, one checkpoint per level stem (server.agents.project).
+SPECIALISTS_DIR = Path(__file__).resolve().parent / "specialists"
 BUILTIN = ("noop", "random", "general")
 
 

@@ -3,8 +3,9 @@
 `AgentLink(store=..., agents_dir=..., pool=...).attach(manager)` chains onto the manager's GUI and query hooks
 (after the gallery's), so:
 - every tab gets an Agent folder: a choice of agent ("general", the newest specialist, and every specialist of
-  the level by name), Watch agent, Race the agent, Train on this level, Cancel training, a progress bar, a
-  status line and a learning-curve image redrawn from the worker's progress;
+  the level by name, the project's shipped one last: server.agents.project), Watch agent, Race the agent,
+  Train on this level, Cancel training, a progress bar, a status line and a learning-curve image redrawn from
+  the worker's progress;
 - `/?level=<id>&mode=agent` (the gallery card's "Watch agent") opens the level and starts the agent on it.
 
 Specialists and runs belong to someone (issue 26; docs/agents.md, "Training belongs to someone"):
@@ -37,6 +38,7 @@ from urllib.parse import parse_qs
 import numpy as np
 
 from server.agents.play import WINNER_TEXT, AgentController, AgentRunner, RaceController
+from server.agents.project import ProjectSpecialists
 from server.agents.training import TrainingJob, TrainingPool
 from server.agents.training_tab import (
     BEST,
@@ -58,7 +60,8 @@ log = logging.getLogger(__name__)
 
 class AgentLink(TabTraining):
     def __init__(self, *, store=None, agents_dir: str | Path, pool: TrainingPool | None = None,
-                 train_steps: int = DEFAULT_TRAIN_STEPS, train_options: dict | None = None, recorder=None):
+                 train_steps: int = DEFAULT_TRAIN_STEPS, train_options: dict | None = None, recorder=None,
+                 project_specialists: bool = True):
         from server.gallery.agents import LevelAgents
         from server.gallery.runs import BestRuns
 
@@ -67,6 +70,7 @@ class AgentLink(TabTraining):
         self.runs = BestRuns(store) if store is not None and store.recordings_dir is not None else None
         self.agents_dir = Path(agents_dir)
         self.level_agents = LevelAgents(store, self.agents_dir) if store is not None else None
+        self.project = ProjectSpecialists() if project_specialists else None
         self.pool = pool
         self.train_steps = train_steps
         self.train_options = train_options or {}
@@ -163,6 +167,11 @@ class AgentLink(TabTraining):
                 out += [(f"{row['name']} (#{row['id']})", str(row["path"])) for row in self.level_agents.list(level_id)]
             except Exception:
                 log.exception("could not list the specialists of %s", level_id)
+        if self.project is not None:  # last: one trained for this level by someone here is preferred
+            try:
+                out += self.project.matching(json.loads(session.editor.export("ours")))
+            except Exception:
+                log.exception("could not match the tab's level with the project's specialists")
         return out
 
     def _adopt_saved(self, session) -> None:

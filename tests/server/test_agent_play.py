@@ -407,3 +407,34 @@ def test_a_specialist_attaches_to_a_level_whose_id_starts_with_a_dash(app, make_
     job = app.agents.train(session, steps=4000)
     assert job.settled.wait(60) and job.state == "done"
     assert len(app.agents.level_agents.list("-dash-first")) == 1
+
+
+def test_a_project_level_shown_unchanged_is_raced_by_its_shipped_specialist(app, make_client, tmp_path):
+    """A project level opened as a file gets the specialist shipped for it (server.agents.project) as "best", behind
+    no other specialist; once edited it is another level and falls back to the general agent."""
+    from server.agents.project import REPO_LEVELS, ProjectSpecialists
+
+    shipped = tmp_path / "specialists" / "car_right"
+    shipped.mkdir(parents=True)
+    (shipped / "config.json").write_text("{}")  # resolve() only names the directory; nothing is loaded here
+    client = make_client(app)
+    session, _ = _session(app, client)
+    saved = app.agents.project
+    app.agents.project = ProjectSpecialists(tmp_path / "specialists", REPO_LEVELS)
+    try:
+        session.open_level((REPO_LEVELS / "car_right.json").read_bytes(), "car_right.json")
+        assert app.agents.resolve(session, BEST) == ("project specialist (car_right)", str(shipped))
+        app.agents.refresh_choices(session)
+        assert "project specialist (car_right)" in app.agents.tab(session).choice.options
+        _wait(lambda: app.store.counts()["levels"] >= 21)  # the gallery seeded from levels/
+        GalleryLink(app.store).open(session, "car-right")  # the gallery's copy of it is the same level
+        assert app.agents.resolve(session, BEST) == ("project specialist (car_right)", str(shipped))
+        session.open_level((REPO_LEVELS / "car_ramp.json").read_bytes(), "car_ramp.json")
+        assert app.agents.resolve(session, BEST) == ("general", "general"), "no specialist shipped for car_ramp"
+        session.open_level((REPO_LEVELS / "car_right.json").read_bytes(), "car_right.json")
+        document = json.loads(session.editor.export("ours"))
+        document["bodies"][-1]["friction"] = 0.123  # any edit makes it another level
+        session.open_level(json.dumps(document).encode(), "car_right.json")
+        assert app.agents.resolve(session, BEST) == ("general", "general")
+    finally:
+        app.agents.project = saved

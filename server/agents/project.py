@@ -1,0 +1,73 @@
+"""Project specialists: agents shipped with the repository for the project's own levels (levels/).
+
+The general agent plays every level, but on some of the project's levels it does not win yet (car_right, issue
+33), and racing the agent is the point of the browser app. So a project level may ship a specialist, fine-tuned
+from the general agent, in `kinetix/agents/specialists/<level stem>/` (a checkpoint; its README says how each was
+made). A tab is offered it while it shows that level unchanged, however it was opened (the gallery's seeded copy,
+a file, a link): the tab's level is compared, as our format's document without its name, with the project
+file's. An edited level gets no project specialist: it is no longer the level it was trained on.
+
+The tab's own and the gallery's specialists come first (server.agents.tab.AgentLink.specialists), so "best" picks
+a specialist someone trained for the level over the shipped one, and the shipped one over the general agent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from pathlib import Path
+
+from kinetix.agents.checkpoint import CONFIG_FILE
+from kinetix.agents.policy import SPECIALISTS_DIR
+from server.editor import levelio
+
+log = logging.getLogger(__name__)
+REPO_LEVELS = Path(__file__).resolve().parents[2] / "levels"
+
+
+def _without_name(document: dict) -> dict:
+    return {key: value for key, value in document.items() if key != "name"}
+
+
+class ProjectSpecialists:
+    """The shipped specialists and the project levels they were trained on, matched by level content."""
+
+    def __init__(self, specialists_dir: Path = SPECIALISTS_DIR, levels_dir: Path = REPO_LEVELS):
+        self.specialists_dir = Path(specialists_dir)
+        self.levels_dir = Path(levels_dir)
+        self._documents: dict[str, dict] | None = None  # stem -> the level as the editor exports it, without name
+        self._lock = threading.Lock()
+
+    def available(self) -> dict[str, Path]:
+        """{level stem: checkpoint dir} for every shipped specialist whose project level exists."""
+        if not self.specialists_dir.is_dir():
+            return {}
+        return {d.name: d for d in sorted(self.specialists_dir.iterdir())
+                if (d / CONFIG_FILE).is_file() and (self.levels_dir / f"{d.name}.json").is_file()}
+
+    def _level_documents(self) -> dict[str, dict]:
+        """Each project level with a specialist, loaded and exported as the editor does (parsed, built, written in
+        our format), once per process."""
+        with self._lock:
+            if self._documents is None:
+                documents = {}
+                for stem in self.available():
+                    path = self.levels_dir / f"{stem}.json"
+                    try:
+                        spec, size = levelio.parse(path.read_bytes(), path.name)
+                        from kinetix.formats import build
+
+                        documents[stem] = _without_name(json.loads(levelio.export(build(spec, size), "ours")))
+                    except Exception:  # a broken project file is a bug in the repository: say so, offer nothing
+                        log.exception("project level %s could not be read for its specialist", path)
+                self._documents = documents
+            return self._documents
+
+    def matching(self, document: dict) -> list[tuple[str, str]]:
+        """(label, checkpoint dir) of the shipped specialists trained on exactly this level (our format's
+        document of the tab's level)."""
+        wanted = _without_name(document)
+        available = self.available()
+        return [(f"project specialist ({stem})", str(available[stem]))
+                for stem, known in self._level_documents().items() if known == wanted and stem in available]

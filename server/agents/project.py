@@ -20,14 +20,12 @@ from pathlib import Path
 
 from kinetix.agents.checkpoint import CONFIG_FILE
 from kinetix.agents.policy import SPECIALISTS_DIR
+from kinetix.formats import build
+from server.agents.training_tab import without_name
 from server.editor import levelio
+from server.gallery.store import REPO_LEVELS
 
 log = logging.getLogger(__name__)
-REPO_LEVELS = Path(__file__).resolve().parents[2] / "levels"
-
-
-def _without_name(document: dict) -> dict:
-    return {key: value for key, value in document.items() if key != "name"}
 
 
 class ProjectSpecialists:
@@ -56,9 +54,7 @@ class ProjectSpecialists:
                     path = self.levels_dir / f"{stem}.json"
                     try:
                         spec, size = levelio.parse(path.read_bytes(), path.name)
-                        from kinetix.formats import build
-
-                        documents[stem] = _without_name(json.loads(levelio.export(build(spec, size), "ours")))
+                        documents[stem] = without_name(json.loads(levelio.export(build(spec, size), "ours")))
                     except Exception:  # a broken project file is a bug in the repository: say so, offer nothing
                         log.exception("project level %s could not be read for its specialist", path)
                 self._documents = documents
@@ -67,7 +63,7 @@ class ProjectSpecialists:
     def matching(self, document: dict) -> list[tuple[str, str]]:
         """(label, checkpoint dir) of the shipped specialists trained on exactly this level (our format's
         document of the tab's level)."""
-        wanted = _without_name(document)
+        wanted = without_name(document)
         available = self.available()
         return [(f"project specialist ({stem})", str(available[stem]))
                 for stem, known in self._level_documents().items() if known == wanted and stem in available]

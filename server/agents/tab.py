@@ -50,7 +50,7 @@ from server.agents.training_tab import (
     LocalSpecialist,
     RunOwner,
     TabTraining,
-    _without_name,
+    without_name,
 )
 from server.play.hooks import PlayListener
 
@@ -183,13 +183,13 @@ class AgentLink(TabTraining):
         if not self.level_agents.owns(session.gallery_id, session.author_token):
             return  # someone else's level: the tab's specialists stay with the tab
         try:
-            stored = _without_name(self.store.get_level(session.gallery_id)["level"])
+            stored = without_name(self.store.get_level(session.gallery_id)["level"])
         except Exception:
             return
         for local in list(tab.local):
             try:
                 trained_on = json.loads((self.agents_dir / local.run_name / "level.json").read_text())
-                if _without_name(trained_on) != stored:
+                if without_name(trained_on) != stored:
                     continue
                 self.level_agents.attach(session.gallery_id, local.run_name, token=session.author_token,
                                          steps=local.steps,

@@ -85,7 +85,7 @@ class TabTraining:
             stored = self.store.get_level(level_id)["level"]
         except Exception:
             return False
-        return _without_name(stored) == _without_name(document)
+        return without_name(stored) == without_name(document)
 
     def cancel_training(self, session) -> None:
         tab = self.tab(session)
@@ -222,7 +222,7 @@ class LocalSpecialist:
     finalizer: weakref.finalize
 
 
-def _without_name(document: dict) -> dict:
+def without_name(document: dict) -> dict:
     """A level document without its name (the gallery sets the name on save), for comparing levels."""
     return {key: value for key, value in document.items() if key != "name"}
 

@@ -61,17 +61,19 @@ def _panel(draw: ImageDraw.ImageDraw, box: tuple[int, int, int, int], title: str
         draw.text((right - 150, top + 6 + 14 * i), label, fill=colour)
 
 
-def learning_curve(path: str | os.PathLike, runs: dict[str, list[dict]], width: int = 720) -> None:
+def learning_curve(path: str | os.PathLike, runs: dict[str, list[dict]], width: int = 720,
+                   titles: tuple[str, str] = ("mean episode return", "solve rate (finished episodes)")) -> None:
     """Write a PNG with mean episode return and solve rate against env steps, one line per run.
 
-    `runs` maps a label to that run's metrics (dicts with env_steps, mean_return, solve_rate)."""
+    `runs` maps a label to that run's metrics (dicts with env_steps, mean_return, solve_rate); `titles` names the
+    two panels."""
     image = Image.new("RGB", (width, 520), "white")
     draw = ImageDraw.Draw(image)
     def series(key):
         return [(label, [m["env_steps"] for m in ms], [m[key] for m in ms]) for label, ms in runs.items()]
 
-    _panel(draw, (0, 0, width, 260), "mean episode return", series("mean_return"), None)
-    _panel(draw, (0, 260, width, 520), "solve rate (finished episodes)", series("solve_rate"), (0.0, 1.0))
+    _panel(draw, (0, 0, width, 260), titles[0], series("mean_return"), None)
+    _panel(draw, (0, 260, width, 520), titles[1], series("solve_rate"), (0.0, 1.0))
     tmp = f"{path}.tmp.png"
     image.save(tmp)
     os.replace(tmp, path)

@@ -34,7 +34,8 @@ class ProjectSpecialists:
     def __init__(self, specialists_dir: Path = SPECIALISTS_DIR, levels_dir: Path = REPO_LEVELS):
         self.specialists_dir = Path(specialists_dir)
         self.levels_dir = Path(levels_dir)
-        self._documents: dict[str, dict] | None = None  # stem -> the level as the editor exports it, without name
+        # stem -> (checkpoint dir, the level as the editor exports it, without name); read once per process
+        self._known: dict[str, tuple[Path, dict]] | None = None
         self._lock = threading.Lock()
 
     def available(self) -> dict[str, Path]:
@@ -44,26 +45,25 @@ class ProjectSpecialists:
         return {d.name: d for d in sorted(self.specialists_dir.iterdir())
                 if (d / CONFIG_FILE).is_file() and (self.levels_dir / f"{d.name}.json").is_file()}
 
-    def _level_documents(self) -> dict[str, dict]:
-        """Each project level with a specialist, loaded and exported as the editor does (parsed, built, written in
-        our format), once per process."""
+    def _level_documents(self) -> dict[str, tuple[Path, dict]]:
+        """Each shipped specialist with its project level, loaded and exported as the editor does (parsed, built,
+        written in our format), once per process: the shipped files do not change while the server runs."""
         with self._lock:
-            if self._documents is None:
-                documents = {}
-                for stem in self.available():
+            if self._known is None:
+                known = {}
+                for stem, checkpoint in self.available().items():
                     path = self.levels_dir / f"{stem}.json"
                     try:
                         spec, size = levelio.parse(path.read_bytes(), path.name)
-                        documents[stem] = without_name(json.loads(levelio.export(build(spec, size), "ours")))
+                        known[stem] = (checkpoint, without_name(json.loads(levelio.export(build(spec, size), "ours"))))
                     except Exception:  # a broken project file is a bug in the repository: say so, offer nothing
                         log.exception("project level %s could not be read for its specialist", path)
-                self._documents = documents
-            return self._documents
+                self._known = known
+            return self._known
 
     def matching(self, document: dict) -> list[tuple[str, str]]:
         """(label, checkpoint dir) of the shipped specialists trained on exactly this level (our format's
         document of the tab's level)."""
         wanted = without_name(document)
-        available = self.available()
-        return [(f"project specialist ({stem})", str(available[stem]))
-                for stem, known in self._level_documents().items() if known == wanted and stem in available]
+        return [(f"project specialist ({stem})", str(checkpoint))
+                for stem, (checkpoint, known) in self._level_documents().items() if known == wanted]

@@ -60,8 +60,7 @@ log = logging.getLogger(__name__)
 
 class AgentLink(TabTraining):
     def __init__(self, *, store=None, agents_dir: str | Path, pool: TrainingPool | None = None,
-                 train_steps: int = DEFAULT_TRAIN_STEPS, train_options: dict | None = None, recorder=None,
-                 project_specialists: bool = True):
+                 train_steps: int = DEFAULT_TRAIN_STEPS, train_options: dict | None = None, recorder=None):
         from server.gallery.agents import LevelAgents
         from server.gallery.runs import BestRuns
 
@@ -70,7 +69,7 @@ class AgentLink(TabTraining):
         self.runs = BestRuns(store) if store is not None and store.recordings_dir is not None else None
         self.agents_dir = Path(agents_dir)
         self.level_agents = LevelAgents(store, self.agents_dir) if store is not None else None
-        self.project = ProjectSpecialists() if project_specialists else None
+        self.project = ProjectSpecialists()
         self.pool = pool
         self.train_steps = train_steps
         self.train_options = train_options or {}
@@ -167,11 +166,10 @@ class AgentLink(TabTraining):
                 out += [(f"{row['name']} (#{row['id']})", str(row["path"])) for row in self.level_agents.list(level_id)]
             except Exception:
                 log.exception("could not list the specialists of %s", level_id)
-        if self.project is not None:  # last: one trained for this level by someone here is preferred
-            try:
-                out += self.project.matching(json.loads(session.editor.export("ours")))
-            except Exception:
-                log.exception("could not match the tab's level with the project's specialists")
+        try:  # last: one trained for this level by someone here is preferred
+            out += self.project.matching(json.loads(session.editor.export("ours")))
+        except Exception:
+            log.exception("could not match the tab's level with the project's specialists")
         return out
 
     def _adopt_saved(self, session) -> None:

@@ -295,7 +295,6 @@ class App:
                                 train_steps=self.config.train_steps, train_options=self.config.train_options,
                                 recorder=self.recorder if self.config.record else None)
         self.agents.attach(self.manager)
-        self.warmup.append("the project specialists' levels", self.agents.project.preload)
         if self.agents.level_agents is not None and self.agents.level_agents.remove_orphans():
             log.info("removed stored checkpoints of deleted levels' specialists")
 

@@ -61,11 +61,6 @@ class ProjectSpecialists:
                 self._known = known
             return self._known
 
-    def preload(self) -> None:
-        """Read the shipped specialists' levels now. The server does it after its compiles (server.play.warmup):
-        with 13 specialists it takes 1-2 s, which the first tab to press an agent button would otherwise wait."""
-        self._level_documents()
-
     def matching(self, document: dict) -> list[tuple[str, str]]:
         """(label, checkpoint dir) of the shipped specialists trained on exactly this level (our format's
         document of the tab's level)."""

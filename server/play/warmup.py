@@ -52,12 +52,6 @@ class WarmUp:
         self._calls[label] = work
         self.tasks.insert(0, ("call", label))
 
-    def append(self, label: str, work: Callable[[], object]) -> None:
-        """Run `work()` after the compiles (reading what the first use of a feature would otherwise read while a
-        user waits), named like prepend's. Before start() only."""
-        self._calls[label] = work
-        self.tasks.append(("call", label))
-
     # ------------------------------------------------------------------ what sessions ask
 
     def ready(self, size: str) -> bool:

@@ -2,7 +2,6 @@
 loads, and acts on it; a directory without a checkpoint or without its level is not offered."""
 
 import json
-import shutil
 
 import jax
 import numpy as np
@@ -37,17 +36,3 @@ def test_only_complete_specialists_of_existing_levels_are_offered(tmp_path):
     assert list(project.available()) == ["car_right"]
     document = json.loads((REPO_LEVELS / "car_ramp.json").read_text())
     assert project.matching(document) == []
-
-
-def test_the_levels_are_read_once_by_preload(tmp_path):
-    """The server preloads the shipped levels after its compiles; matching then reads no file."""
-    specialists, levels = tmp_path / "specialists", tmp_path / "levels"
-    (specialists / "car_right").mkdir(parents=True)
-    (specialists / "car_right" / "config.json").write_text("{}")
-    levels.mkdir()
-    shutil.copy(REPO_LEVELS / "car_right.json", levels / "car_right.json")
-    project = ProjectSpecialists(specialists, levels)
-    project.preload()
-    document = json.loads((levels / "car_right.json").read_text())
-    (levels / "car_right.json").unlink()
-    assert project.matching(document) == [("project specialist (car_right)", str(specialists / "car_right"))]

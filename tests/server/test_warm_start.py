@@ -38,8 +38,7 @@ def test_the_page_answers_and_the_tab_shows_progress_before_the_step_compiles(he
         assert not app.warmup.ready("m")  # the page answered while the compile was held back
         client = make_client(app)
         session, _ = session_of(app, client)
-        # 1 of 2: after the step, the warm-up reads the levels of the shipped project specialists
-        assert f"{PREPARING}: compiling size m: 1 of 2" in session.hud()
+        assert f"{PREPARING}: compiling size m: 1 of 1" in session.hud()
         assert session.frames_sent >= 1  # the tab drew its level, not a blank page
 
         session.toggle_play()  # Play before the step is ready: it waits, it does not fail
@@ -92,15 +91,6 @@ def test_work_prepended_runs_first_and_is_named_in_the_progress():
     warm.prepend("the gallery's levels", lambda: seen.append(warm.progress()))
     warm.start().join(timeout=10)
     assert seen == ["preparing the gallery's levels: 1 of 2"] and warm.finished and warm.ready("s")
-
-
-def test_work_appended_runs_after_the_compiles():
-    order = []
-    warm = WarmUp(("s",), batches=True)
-    warm._compile = lambda kind, size, real=warm._compile: real(kind, size) if kind == "call" else order.append(kind)
-    warm.append("the project specialists' levels", lambda: order.append(warm.progress()))
-    warm.start().join(timeout=10)
-    assert order == ["size", "batches", "preparing the project specialists' levels: 3 of 3"] and warm.finished
 
 
 def test_a_cancelled_warm_up_skips_what_it_has_not_started():

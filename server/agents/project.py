@@ -20,9 +20,7 @@ from pathlib import Path
 
 from kinetix.agents.checkpoint import CONFIG_FILE
 from kinetix.agents.policy import SPECIALISTS_DIR
-from kinetix.formats import build
 from server.agents.training_tab import without_name
-from server.editor import levelio
 from server.gallery.store import REPO_LEVELS
 
 log = logging.getLogger(__name__)
@@ -46,17 +44,19 @@ class ProjectSpecialists:
                 if (d / CONFIG_FILE).is_file() and (self.levels_dir / f"{d.name}.json").is_file()}
 
     def _level_documents(self) -> dict[str, tuple[Path, dict]]:
-        """Each shipped specialist with its project level, loaded and exported as the editor does (parsed, built,
-        written in our format), once per process: the shipped files do not change while the server runs."""
+        """Each shipped specialist with its project level's document without its name, read once per process (the
+        shipped files do not change while the server runs). A project file is what the editor exports for it
+        (tests/server/test_project_specialists.py checks each), so it is compared as read: parsing, building and
+        exporting all 13 took 2 s of Python holding the interpreter lock, which delayed the frames of the tab whose
+        agent button first asked for them."""
         with self._lock:
             if self._known is None:
                 known = {}
                 for stem, checkpoint in self.available().items():
                     path = self.levels_dir / f"{stem}.json"
                     try:
-                        spec, size = levelio.parse(path.read_bytes(), path.name)
-                        known[stem] = (checkpoint, without_name(json.loads(levelio.export(build(spec, size), "ours"))))
-                    except Exception:  # a broken project file is a bug in the repository: say so, offer nothing
+                        known[stem] = (checkpoint, without_name(json.loads(path.read_text())))
+                    except (OSError, ValueError):  # a broken project file is a bug in the repository: say so
                         log.exception("project level %s could not be read for its specialist", path)
                 self._known = known
             return self._known

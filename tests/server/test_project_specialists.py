@@ -9,8 +9,11 @@ import numpy as np
 import jax2d
 from kinetix.agents.policy import SPECIALISTS_DIR, load_policy
 from kinetix.env import EnvConfig, make_env
+from kinetix.formats import build
 from kinetix.levels import load_level
 from server.agents.project import REPO_LEVELS, ProjectSpecialists
+from server.agents.training_tab import without_name
+from server.editor import levelio
 
 
 def test_every_shipped_specialist_has_its_level_loads_and_acts():
@@ -24,6 +27,16 @@ def test_every_shipped_specialist_has_its_level_loads_and_acts():
         obs, _ = env.reset(jax.random.key(0))
         action, value = jax2d.jit(load_policy(str(path), env).act)(jax.random.key(1), obs)
         assert env.action_space.contains(np.asarray(action)) and np.isfinite(float(value)), stem
+
+
+def test_every_shipped_specialist_s_level_file_is_what_the_editor_exports_for_it():
+    """ProjectSpecialists compares a tab's exported level with the project file as read, so each file must be in the
+    editor's own form (our format, as levelio.export writes it): a hand-edited file that is not would never match."""
+    for stem in ProjectSpecialists().available():
+        path = REPO_LEVELS / f"{stem}.json"
+        spec, size = levelio.parse(path.read_bytes(), path.name)
+        exported = json.loads(levelio.export(build(spec, size), "ours"))
+        assert without_name(exported) == without_name(json.loads(path.read_text())), stem
 
 
 def test_only_complete_specialists_of_existing_levels_are_offered(tmp_path):

@@ -1,5 +1,5 @@
-"""The specialists shipped for the project's own levels (server.agents.project): each names a project level,
-loads, and acts on it; a directory without a checkpoint or without its level is not offered."""
+"""The specialists shipped for the project's own levels (server.agents.project): each names a project level in the
+editor's own form, loads, and acts on it; a directory without a checkpoint or without its level is not offered."""
 
 import json
 

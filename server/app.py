@@ -394,10 +394,10 @@ def serve(args) -> int:
         return 2
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    print(f"Open {app.url}", flush=True)
-    print("Compiling the physics for play in the background (a first start takes longer; later starts use the "
-          "cache)...", flush=True)
-    try:
+    try:  # from here on a Ctrl+C shuts down cleanly, even one that lands in these prints (CI saw it there once)
+        print(f"Open {app.url}", flush=True)
+        print("Compiling the physics for play in the background (a first start takes longer; later starts use the "
+              "cache)...", flush=True)
         while not stop.wait(0.5):
             pass
     except KeyboardInterrupt:

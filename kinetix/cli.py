@@ -266,7 +266,8 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop once the training solve rate averages RATE over the last 8 updates")
     parser.add_argument("--resume", metavar="DIR",
                         help="continue the run in DIR (its output directory) from its last checkpoint; settings "
-                             "not given are the run's own, settings given must equal them")
+                             "not given are the run's own, settings given must equal them but --steps, "
+                             "--update-epochs and --num-minibatches")
     parser.add_argument("--checkpoint-every", type=float, default=None, metavar="MINUTES",
                         help="also write the checkpoint and training state every MINUTES of wall-clock time "
                              "(default: only at the end)")

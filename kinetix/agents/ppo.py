@@ -197,6 +197,26 @@ def ppo_update(network: nn.Module, action_type: str, config: TrainConfig, train_
     return train_state, jax.tree.map(jnp.mean, aux)
 
 
+def rebase_schedule(train_state: TrainState, config: TrainConfig, update: int) -> TrainState:
+    """`train_state` with its learning-rate schedule's step count set to `update` updates of `config`'s gradient
+    steps (epochs x minibatches each).
+
+    The annealed rate is lr * (1 - count / (updates x epochs x minibatches)) with count the gradient steps taken.
+    A run resumed with another epoch or minibatch count would otherwise jump along that line (8x more minibatches:
+    the count covers 1/8 of the new total); re-based, the rate stays lr * (1 - update / updates), the plan's rate at
+    the same update. Unchanged settings give the count it already holds, so an exact resume stays exact. Adam's own
+    count (its bias correction) is the optimiser's history and is left alone."""
+    steps = update * config.update_epochs * config.num_minibatches
+
+    def rebase(node):
+        if isinstance(node, optax.ScaleByScheduleState):  # count * 0 + steps keeps the leaf's dtype and placement
+            return node._replace(count=node.count * 0 + steps)
+        return node
+
+    is_schedule = lambda node: isinstance(node, optax.ScaleByScheduleState)
+    return train_state.replace(opt_state=jax.tree.map(rebase, train_state.opt_state, is_leaf=is_schedule))
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Runner:

@@ -38,15 +38,18 @@ from kinetix.agents import checkpoint as checkpoint_module
 from kinetix.agents import curricula
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.policy import resolve
-from kinetix.agents.ppo import TrainConfig, make_train
+from kinetix.agents.ppo import TrainConfig, make_train, rebase_schedule
 from kinetix.agents.rollout import run_episodes
 from kinetix.env import EnvParams, make_env
 from kinetix.level import LevelError
 from kinetix.level_source import RANDOM_LEVELS, level_source
 
-# Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it). Nothing in the
-# compiled update depends on it but an annealed learning rate, which then follows the new total (see train_agent).
-EXTENDABLE = ("train.total_timesteps",)
+# Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it), and how each
+# update cuts its batch for the gradient steps (`--update-epochs`, `--num-minibatches`). Nothing carried from one
+# update to the next depends on them but an annealed learning rate's step count, which the resume re-bases so that
+# the rate stays that of the plan at the same update (ppo.rebase_schedule, train_agent).
+EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches")
+BATCH_CUT = ("update_epochs", "num_minibatches")  # TrainConfig fields of the cut, as the plans record them
 
 
 def setup_levels(level: str, curriculum: str | None, observation: str, action: str,
@@ -88,11 +91,13 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     save_state: also write the whole training state to OUT/resume (kinetix.agents.resume) at the end, stopped
     early or not, so the run can be resumed (`kinetix train` always does; off by default for library callers
     such as the server, whose specialists need only the checkpoint). resume: continue the run whose training
-    state is in OUT/resume instead of starting afresh; every setting but `steps` must equal the saved run's
-    (CheckpointError naming the differences otherwise). A different `steps` re-plans the run (longer or shorter,
-    not shorter than what is done): an annealed learning rate is from then on that of a `steps`-long run at the
-    same update (it jumps where the plan changes; a finished run's 0 becomes lr * (1 - done / steps)), and with a
-    constant one the result equals a run planned that long from the start. checkpoint_every (minutes of
+    state is in OUT/resume instead of starting afresh; every setting but `steps`, `config.update_epochs` and
+    `config.num_minibatches` must equal the saved run's (CheckpointError naming the differences otherwise). A
+    different `steps` re-plans the run (longer or shorter, not shorter than what is done): an annealed learning
+    rate is from then on that of a `steps`-long run at the same update (it jumps where the plan changes; a
+    finished run's 0 becomes lr * (1 - done / steps)), and with a constant one the result equals a run planned that
+    long from the start. Different epochs or minibatches cut the updates from then on differently; the rate stays
+    lr * (1 - update / updates planned). checkpoint_every (minutes of
     wall-clock time) / checkpoint_every_updates: also write everything between chunks at that cadence, so a
     killed job loses at most that much work. Either of these implies save_state. In a multi-process run only
     process 0 writes."""
@@ -154,11 +159,11 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     runner = jax2d.jit(trainer.init)(jax.random.key(seed))
     history: list[dict] = []
     elapsed_before = 0.0
-    plans = [{"update": 0, "steps": steps}]  # the run's length, and where each --resume --steps changed it
+    plans = [{"update": 0, "steps": steps}]  # the run's length and batch cut, and where a --resume changed them
     if saved is not None:
         meta, arrays, _ = saved
         history, elapsed_before = list(meta["history"]), float(meta["elapsed"])
-        plans = replan(meta, len(history), steps)
+        plans = replan(meta, len(history), steps, {k: getattr(config, k) for k in BATCH_CUT})
         if len(history) % config.updates_per_call:
             raise CheckpointError(f"the training state in {out} holds {len(history)} updates, not a whole number of "
                                   f"this run's chunks")
@@ -166,6 +171,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
             raise CheckpointError(f"the run in {out} has trained {history[-1]['env_steps']:.0f} steps already; "
                                   f"--steps {steps} would end before that (give at least that many to extend it)")
         runner = resume_module.restore(runner, arrays)
+        runner = dataclasses.replace(runner, train_state=rebase_schedule(runner.train_state, config, len(history)))
         if resume_module.is_compact(arrays):  # fresh environments: their levels are no buffer slot's (-2)
             runner = dataclasses.replace(runner, env_level_ids=runner.env_level_ids * 0 - 2)
             warnings.warn(f"{out}: a compact training state; every environment restarts on a fresh level",
@@ -234,14 +240,23 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     return write(stopped=stopped, final=True)
 
 
-def replan(meta: dict, done: int, steps: int) -> list[dict]:
-    """The saved run's plans ({"update", "steps"}: its length from that update on), with `steps` from update
-    `done` on where it differs from the last. States written before plans were recorded had one plan."""
+def replan(meta: dict, done: int, steps: int, cut: dict | None = None) -> list[dict]:
+    """The saved run's plans ({"update", "steps"}: its length from that update on; with "update_epochs" and
+    "num_minibatches" where the batch cut changed there), with `steps` and `cut` (those two TrainConfig fields)
+    from update `done` on where they differ from the plans in force. States written before plans were recorded
+    had one plan."""
     plans = list(meta.get("plans") or [{"update": 0, "steps": meta["arguments"]["steps"]}])
-    if plans[-1]["steps"] != steps:
+    saved_cut = {k: meta.get("arguments", {}).get("config", {}).get(k) for k in BATCH_CUT}
+    for plan in plans:
+        saved_cut.update({k: plan[k] for k in BATCH_CUT if k in plan})
+    changed = {k: v for k, v in (cut or {}).items() if v != saved_cut.get(k)}
+    if plans[-1]["steps"] != steps or changed:
+        entry = {"update": done, "steps": steps, **({k: cut[k] for k in BATCH_CUT} if changed else {})}
         if plans[-1]["update"] == done:  # re-planned again before any update ran: the newer plan replaces it
-            plans.pop()
-        plans.append({"update": done, "steps": steps})
+            previous = plans.pop()
+            if not changed and any(k in previous for k in BATCH_CUT):
+                entry.update({k: previous[k] for k in BATCH_CUT})
+        plans.append(entry)
     return plans
 
 

@@ -9,6 +9,7 @@ import shutil
 import warnings
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -218,6 +219,71 @@ def test_replan_records_where_the_length_changed():
     assert replan({"plans": extended}, 8, 200) == extended  # resumed with the same length: nothing new
     # changed again before any update ran: the newer plan replaces the one that never took effect
     assert replan({"plans": extended}, 4, 300) == [{"update": 0, "steps": 100}, {"update": 4, "steps": 300}]
+
+
+def test_replan_records_where_the_batch_cut_changed():
+    saved = {"arguments": {"steps": 100, "config": {"update_epochs": 4, "num_minibatches": 4}}}
+    cut = {"update_epochs": 4, "num_minibatches": 4}
+    assert replan(saved, 4, 100, cut) == [{"update": 0, "steps": 100}]  # the run's own cut: nothing new
+    finer = replan(saved, 4, 100, dict(cut, num_minibatches=32))
+    assert finer == [{"update": 0, "steps": 100}, {"update": 4, "steps": 100, "update_epochs": 4,
+                                                   "num_minibatches": 32}]
+    # resumed again with the cut in force, or only extended: the cut is the latest plan's, not the arguments'
+    assert replan(dict(saved, plans=finer), 8, 100, dict(cut, num_minibatches=32)) == finer
+    assert replan(dict(saved, plans=finer), 8, 200, dict(cut, num_minibatches=32))[-1] == {"update": 8, "steps": 200}
+    # back to the first cut later: recorded again
+    assert replan(dict(saved, plans=finer), 8, 100, cut)[-1] == {"update": 8, "steps": 100, **cut}
+    # extended before any update ran with the new cut: the newer plan replaces the older and keeps its cut
+    assert replan(dict(saved, plans=finer), 4, 300, dict(cut, num_minibatches=32))[-1] == {
+        "update": 4, "steps": 300, "update_epochs": 4, "num_minibatches": 32}
+
+
+def test_rebase_schedule_keeps_the_rate_of_the_plan_at_the_same_update():
+    import jax.numpy as jnp
+    import optax
+    from flax.training.train_state import TrainState
+
+    from kinetix.agents.ppo import rebase_schedule
+
+    config = TrainConfig(total_timesteps=4 * 8 * 10, num_envs=4, num_steps=8, num_minibatches=2, update_epochs=3)
+    schedule = optax.linear_schedule(1.0, 0.0, config.num_updates * 3 * 2)
+    state = TrainState.create(apply_fn=None, params={"w": jnp.ones(3)},
+                              tx=optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule)))
+    for _ in range(4 * 3 * 2):  # 4 updates of 3 epochs x 2 minibatches
+        state = state.apply_gradients(grads={"w": jnp.ones(3)})
+
+    def counts(s):
+        found = {}
+        for path, leaf in jax.tree_util.tree_leaves_with_path(s.opt_state):
+            found[jax.tree_util.keystr(path)] = int(leaf) if jnp.ndim(leaf) == 0 else None
+        return {k: v for k, v in found.items() if v is not None}
+
+    assert set(counts(state).values()) == {24}  # Adam's and the schedule's
+    assert counts(rebase_schedule(state, config, 4)) == counts(state)  # the same cut: unchanged
+    finer = rebase_schedule(state, dataclasses.replace(config, num_minibatches=8), 4)
+    assert sorted(counts(finer).values()) == [24, 4 * 3 * 8]  # the schedule's count moves, Adam's does not
+    # the rate the next step takes: that of update 4 of 10 under the new cut, 1 - 4/10
+    new_schedule = optax.linear_schedule(1.0, 0.0, config.num_updates * 3 * 8)
+    assert float(new_schedule(4 * 3 * 8)) == pytest.approx(1 - 4 / 10)
+    assert {leaf.dtype for leaf in jax.tree.leaves(finer.opt_state) if leaf.ndim == 0} == {jnp.dtype(jnp.int32)}
+
+
+@pytest.mark.slow
+def test_resume_with_another_batch_cut_trains_on_and_records_it(reference, tmp_path):
+    out = tmp_path / "run"
+    half = dict(RUN, steps=STEPS // 2)
+    train_agent("random-s", out, **half, save_state=True)  # 4 updates of 1 epoch x 2 minibatches
+    finer = dataclasses.replace(CONFIG, num_minibatches=4, update_epochs=2)
+    summary = train_agent("random-s", out, **dict(RUN, config=finer), resume=True)
+    assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 9))
+    assert summary["plans"] == [{"update": 0, "steps": STEPS // 2},
+                                {"update": 4, "steps": STEPS, "update_epochs": 2, "num_minibatches": 4}]
+    _, arrays = final_state(out)
+    counts = sorted(int(v) for k, v in arrays.items() if k.startswith(".train_state.opt_state") and k.endswith("count"))
+    # Adam took 4 x 2 + 4 x 8 steps; the schedule's count was re-based to 4 updates x 8 at the resume
+    assert counts == [4 * 1 * 2 + 4 * 2 * 4, 8 * 2 * 4]
+    with pytest.raises(CheckpointError, match="num_envs: 4 in the checkpoint, 8 now"):
+        train_agent("random-s", out, **dict(RUN, config=dataclasses.replace(finer, num_envs=8)), resume=True)
 
 
 

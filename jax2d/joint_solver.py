@@ -35,6 +35,14 @@ from jax2d.math2d import (
 )
 from jax2d.state import J_ANGULAR, J_LINEAR_X, J_LINEAR_Y, J_LOWER, J_MOTOR, J_UPPER, Joints
 
+# The soft rows close a joint's position error at most this fast (m/s; rad/s for a weld's angle). Errors up to
+# 8 cm (0.08 rad) close at the soft rate as before (bias rate 127 /s at 60 Hz and 4 substeps); a joint torn wider
+# closes over a few steps. Without the cap a torn joint's bias ran away: in crowded scenes 329, 385, 441 and 509
+# of tests/jax2d/accuracy.py a light hub's welds were pushed apart by deep spawn overlaps, their bias (127 /s
+# times the error) threw bodies at the speed clamp, the errors grew, and 20-500 steps later the impulses
+# overflowed and the NaN guard froze the scene (see docs/engine.md, "Torn joints").
+MAX_CLOSING_SPEED = 10.0
+
 
 class JointConstraints(NamedTuple):
     sel_a: jax.Array  # (J, M) one-hot row of body a, zero for inactive joints
@@ -101,7 +109,11 @@ def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
     cx = (pick_rows(jc.sel_b, pose.x) + rbx) - (pick_rows(jc.sel_a, pose.x) + rax)
     cy = (pick_rows(jc.sel_b, pose.y) + rby) - (pick_rows(jc.sel_a, pose.y) + ray)
     # Only active rows are meaningful; inactive ones have zero selections and masses.
-    return JointFrame(rax, ray, rbx, rby, cx, cy, ab - aa - joints.ref_angle)
+    # A revolute joint's angle counts turns (its limits may span more than a half turn); a weld is back in place
+    # after a whole turn, so its error is the nearest angle to the rest one, in [-pi, pi].
+    angle = ab - aa - joints.ref_angle
+    angle = jnp.where(jc.weld > 0, angle - 2.0 * jnp.pi * jnp.round(angle * (0.5 / jnp.pi)), angle)
+    return JointFrame(rax, ray, rbx, rby, cx, cy, angle)
 
 
 class Schedule(NamedTuple):
@@ -173,16 +185,21 @@ def _add_at_ends(v, sa, sb, on_a, on_b):
     return jnp.stack([v[k] + sa * on_a[k] + sb * on_b[k] for k in range(3)])
 
 
+def _closing(bias):
+    """A bias velocity, at most MAX_CLOSING_SPEED either way."""
+    return jnp.clip(bias, -MAX_CLOSING_SPEED, MAX_CLOSING_SPEED)
+
+
 def _soft_terms(c, softness: Softness, inv_h, use_bias: bool, speculative: bool):
     """(bias, mass scale, impulse scale) for a position error c."""
     if speculative:  # inequality constraints: approach a separated limit exactly
         ahead = c > 0.0
         if use_bias:
-            return (jnp.where(ahead, c * inv_h, softness.bias_rate * c),
+            return (jnp.where(ahead, c * inv_h, _closing(softness.bias_rate * c)),
                     jnp.where(ahead, 1.0, softness.mass_scale), jnp.where(ahead, 0.0, softness.impulse_scale))
         return jnp.where(ahead, c * inv_h, 0.0), 1.0, 0.0
     if use_bias:
-        return softness.bias_rate * c, softness.mass_scale, softness.impulse_scale
+        return _closing(softness.bias_rate * c), softness.mass_scale, softness.impulse_scale
     return 0.0, 1.0, 0.0
 
 
@@ -301,7 +318,7 @@ def project(jc: JointConstraints, fr: JointFrame, vel: Vel, bias_rate, plan: Sch
     error = jnp.stack([fr.cx, fr.cy, fr.angle], axis=1)  # (J, 3, *batch)
     rows = jc.rows.reshape(error.shape)
     velocity_rhs = jnp.stack([(vbx - wb * fr.rby) - (vax - wa * fr.ray), (vby + wb * fr.rbx) - (vay + wa * fr.rax),
-                              wb - wa], axis=1) + bias_rate * error
+                              wb - wa], axis=1) + _closing(bias_rate * error)
     rhs = (velocity_rhs,) if position_fraction is None else (velocity_rhs, position_fraction * _beyond_slop(fr))
     lams = joint_block.solve(a, tuple((r * rows).reshape(jc.rows.shape) for r in rhs), plan.order, plan.count)
     dvx, dvy, dw = _spread_rows(jc, fr, lams[0].reshape(error.shape) * rows)

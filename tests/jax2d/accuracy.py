@@ -192,7 +192,8 @@ def _inside_static(state: jax2d.SimState) -> jax.Array:
 
 @functools.partial(jax2d.jit, static_argnames=("steps",))
 def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int):
-    """Random actions at full power; per step and scene whether a centre is inside a static body (steps, B)."""
+    """Random actions at full power; per step and scene (steps, B): whether a centre is inside a static body, the
+    bodies the NaN guard froze, and the largest linear speed."""
     batch, joints, thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
     step = jax.vmap(lambda s, m, t: scenes.STEP(s, PARAMS, m, t))
 
@@ -201,10 +202,11 @@ def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int):
         motors = jnp.sign(jax.random.uniform(km, (batch, joints), minval=-1.0, maxval=1.0))  # full power
         thrusts = (jax.random.uniform(kt, (batch, thrusters)) > 0.5).astype(jnp.float32)
         s = step(s, motors, thrusts)
-        return s, (jnp.any(jax.vmap(_inside_static)(s), axis=-1), getattr(s, "frozen", jnp.zeros(batch, jnp.int32)))
+        speed = jnp.max(jnp.linalg.norm(s.bodies.velocity, axis=-1), axis=-1)
+        return s, (jnp.any(jax.vmap(_inside_static)(s), axis=-1), s.frozen, speed)
 
-    _, (inside, frozen) = jax.lax.scan(body, states, jax.random.split(key, steps))
-    return inside, frozen
+    _, (inside, frozen, speed) = jax.lax.scan(body, states, jax.random.split(key, steps))
+    return inside, frozen, speed
 
 
 def crowded_walls(scene_count: int = 64, steps: int = 2000, seed: int = 0, first_scene: int = 0) -> dict:
@@ -212,11 +214,28 @@ def crowded_walls(scene_count: int = 64, steps: int = 2000, seed: int = 0, first
     seed: the random actions' key; the scenes are random_scene(first_scene ...)."""
     capacity = jax2d.Capacity(polygons=12, circles=4, joints=6, thrusters=2, max_vertices=8)
     built = [scenes.random_scene(s, capacity)[0] for s in range(first_scene, first_scene + scene_count)]
-    inside, frozen = _crowded_run(scenes.stack(built), jax.random.key(seed), steps)
+    inside, frozen, _ = _crowded_run(scenes.stack(built), jax.random.key(seed), steps)
     inside = np.asarray(inside)
     return dict(steps_inside=int(inside.sum()),
                 scenes_inside=(first_scene + np.nonzero(inside.any(axis=0))[0]).tolist(),
                 total=inside.size, frozen=int(np.asarray(frozen).sum()))
+
+
+def crowded_runaways(scene_ids: tuple[int, ...], steps: int = 600, seed: int = 1) -> dict:
+    """The crowded scenes `scene_ids`, stepped as one batch with random full-power actions (key `seed`): which of
+    them had a body the NaN guard froze, and which had a body at RUNAWAY_SPEED or faster (the motors, thrusters
+    and spawn overlaps of these scenes move nothing faster than about 20 m/s; a body at half the clamp is a
+    solver running away)."""
+    capacity = jax2d.Capacity(polygons=12, circles=4, joints=6, thrusters=2, max_vertices=8)
+    built = [scenes.random_scene(s, capacity)[0] for s in scene_ids]
+    _, frozen, speed = _crowded_run(scenes.stack(built), jax.random.key(seed), steps)
+    frozen, speed = np.asarray(frozen), np.asarray(speed)
+    return dict(frozen=[s for s, f in zip(scene_ids, frozen.any(axis=0), strict=True) if f],
+                runaway=[s for s, f in zip(scene_ids, (speed >= RUNAWAY_SPEED).any(axis=0), strict=True) if f],
+                top_speed=float(speed.max()))
+
+
+RUNAWAY_SPEED = 0.5 * PARAMS.max_linear_speed
 
 
 def main() -> None:
@@ -233,6 +252,7 @@ def main() -> None:
         print(f"a thruster at {accel} m/s^2 through a dynamic plank", thrust_through_a_dynamic_plank(accel))
     for seed in range(8):
         print(f"crowded walls 64 x 2000, actions key {seed}", crowded_walls(seed=seed))
+    print("crowded runaways, scenes 329, 385, 441, 509, key 1", crowded_runaways((329, 385, 441, 509)))
     for first in (64, 128):
         print(f"crowded walls, scenes {first}-{first + 63} x 2000, key 0", crowded_walls(first_scene=first))
 

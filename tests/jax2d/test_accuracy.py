@@ -97,3 +97,15 @@ def test_walls_hold_where_motors_pressed_a_welded_triangle_into_the_floor():
     print(f"\n[crowded walls 192-255, key 3] {result['steps_inside']} steps with a centre inside a static body "
           f"(scenes {result['scenes_inside']}); bodies frozen by the guard {result['frozen']}")
     assert result["steps_inside"] == 0 and result["frozen"] == 0
+
+
+@pytest.mark.slow
+def test_torn_joints_close_without_running_away():
+    """Crowded scenes 329, 385, 441 and 509, which spawn light hubs welded and motor-jointed among bodies 0.3 m
+    deep in each other, with random full-power actions for 600 steps: no body is frozen by the NaN guard and none
+    reaches half the speed clamp. Before joint_solver.MAX_CLOSING_SPEED (issue 35) a torn weld's bias threw
+    bodies at the clamp: this batch froze scene 385 and ran 329, 385 and 509 away (top speed 100 m/s; now ~41)."""
+    result = accuracy.crowded_runaways((329, 385, 441, 509), 600, seed=1)
+    print(f"\n[torn joints] frozen {result['frozen']}, running away {result['runaway']}, "
+          f"top speed {result['top_speed']:.1f} m/s")
+    assert result["frozen"] == [] and result["runaway"] == []

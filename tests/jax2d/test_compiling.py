@@ -9,7 +9,8 @@ import jax2d
 from jax2d import compiling
 from tests.jax2d import scenes
 
-CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False,
+               "xla_cpu_experimental_ynn_fusion_type": compiling.CPU_LIBRARY_FUSIONS}
 GPU_OPTIONS = {"xla_gpu_enable_command_buffer": compiling.GPU_COMMAND_BUFFERS,
                "xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"}
 
@@ -21,10 +22,24 @@ def test_an_option_the_compiler_refuses_is_left_out_with_a_warning() -> None:
         twice = jax2d.jit(lambda x: 2 * x, compiler_options={"xla_cpu_no_such_option_for_this_test": True})
         assert float(twice(jnp.float32(3))) == 6.0
     probes = len(compiling._PROBED)
-    assert compiling.accepted_options("cpu", {"xla_cpu_no_such_option_for_this_test": True,
-                                              "xla_cpu_use_fusion_emitters": False}) == CPU_OPTIONS
+    refused = {"xla_cpu_no_such_option_for_this_test": True}
+    assert compiling.accepted_options("cpu", {**refused, **CPU_OPTIONS}) == CPU_OPTIONS
     assert compiling.accepted_options("cpu", CPU_OPTIONS) == CPU_OPTIONS
     assert len(compiling._PROBED) <= probes + 1  # each option is probed once per process, accepted or not
+
+
+def test_on_the_cpu_only_matrix_products_become_library_calls() -> None:
+    """CPU_LIBRARY_FUSIONS: a layer's product stays a YNNPACK call, a short reduction is XLA's own loop (by
+    default both are library calls, and the step's ~50 reductions cost env m 256 about 10 %)."""
+    def layer_and_sums(w, x):
+        return jnp.tanh(x @ w), jnp.min(x.reshape(512, 8, 8), axis=-1), jnp.sum(jnp.abs(x), axis=-1)
+
+    args = (jnp.ones((64, 32)), jnp.ones((512, 64)))
+    engine = jax2d.jit(layer_and_sums).lower(*args).compile().as_text()
+    plain = jax.jit(layer_and_sums).lower(*args).compile().as_text()  # noqa: TID251 - XLA's defaults
+    assert plain.count("__ynn_fusion") >= 2  # the product and at least one reduction (what the option removes)
+    assert engine.count("__ynn_fusion") == 1 and "dot(" in engine
+    np.testing.assert_allclose(jax2d.jit(layer_and_sums)(*args)[2], 64.0)
 
 
 def test_jit_passes_the_engine_options_and_lets_the_caller_add_or_override(monkeypatch) -> None:
@@ -36,7 +51,8 @@ def test_jit_passes_the_engine_options_and_lets_the_caller_add_or_override(monke
     plain("ab")  # the CPU's top-level version, made on the first call from Python
     assert seen[1] == {"compiler_options": CPU_OPTIONS, "static_argnames": "x"}
     jax2d.jit(len, compiler_options={"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False})("ab")
-    assert seen[3]["compiler_options"] == {"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False}
+    assert seen[3]["compiler_options"] == {**CPU_OPTIONS, "xla_cpu_use_fusion_emitters": True,
+                                           "xla_cpu_enable_fast_math": False}
     assert jax2d.COMPILER_OPTIONS == {**CPU_OPTIONS, **GPU_OPTIONS}  # the caller's dict did not leak in
 
 

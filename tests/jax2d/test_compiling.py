@@ -28,6 +28,7 @@ def test_an_option_the_compiler_refuses_is_left_out_with_a_warning() -> None:
     assert len(compiling._PROBED) <= probes + 1  # each option is probed once per process, accepted or not
 
 
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="YNNPACK library calls are the CPU compiler's")
 def test_on_the_cpu_only_matrix_products_become_library_calls() -> None:
     """CPU_LIBRARY_FUSIONS: a layer's product stays a YNNPACK call, a short reduction is XLA's own loop (by
     default both are library calls, and the step's ~50 reductions cost env m 256 about 10 %)."""

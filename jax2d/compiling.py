@@ -41,8 +41,8 @@ from jax._src import xla_bridge as _xla_bridge  # backends(): which platforms th
 # (+14 %), bitwise the same on a rerun (docs/gpu.md).
 GPU_COMMAND_BUFFERS = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
 # On the CPU, YNNPACK takes only single matrix products (the networks' layers), not reductions: by default XLA
-# hands the step's ~50 short reductions (a polygon's vertices, a pair's feature minimum, the NaN check) to
-# YNNPACK as library calls, each dearer than the loop XLA writes itself. Measured on the 2-core machine (27 Nov
+# hands short reductions to it too, as library calls each dearer than the loop XLA writes itself (~50 in env s's
+# rollout: a polygon's vertices, a pair's minimum, the env's NaN check). Measured on the 2-core machine (27 Nov
 # 2026, quiet, alternating processes, env rollout of the reference levels on two devices, steps/s): s 256
 # 89-92k -> 94-96k, m 256 42-46k -> 49k, l 256 14.6-14.8k -> 14.9-15.8k; s 16, s 2048 and batch 1 within
 # noise; PPO training at s, 512 envs (`kinetix bench train`), 4.8-5.0k both ways.

@@ -36,11 +36,12 @@ def test_on_the_cpu_only_matrix_products_become_library_calls() -> None:
         return jnp.tanh(x @ w), jnp.min(x.reshape(512, 8, 8), axis=-1), jnp.sum(jnp.abs(x), axis=-1)
 
     args = (jnp.ones((64, 32)), jnp.ones((512, 64)))
-    engine = jax2d.jit(layer_and_sums).lower(*args).compile().as_text()
+    compiled = jax2d.jit(layer_and_sums).lower(*args).compile()
+    engine = compiled.as_text()
     plain = jax.jit(layer_and_sums).lower(*args).compile().as_text()  # noqa: TID251 - XLA's defaults
     assert plain.count("__ynn_fusion") >= 2  # the product and at least one reduction (what the option removes)
     assert engine.count("__ynn_fusion") == 1 and "dot(" in engine
-    np.testing.assert_allclose(jax2d.jit(layer_and_sums)(*args)[2], 64.0)
+    np.testing.assert_allclose(compiled(*args)[2], 64.0)
 
 
 def test_jit_passes_the_engine_options_and_lets_the_caller_add_or_override(monkeypatch) -> None:

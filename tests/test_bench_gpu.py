@@ -23,6 +23,15 @@ def test_the_plan_covers_the_issue_grid_with_the_goal_batches_first():
     assert gpu.plan(quick=False, train=False)[2] == []
 
 
+def test_a_short_call_narrows_the_grid_to_the_sizes_and_batches_asked_for():
+    ab, grid, train = gpu.plan(quick=False, flows=False, train=False, flag_variants=False, sizes=("s", "l"),
+                               batches=(2048, 16384))
+    assert ab == [] and train == []
+    assert sorted((job.what, job.size, job.batch) for job in grid) == sorted(
+        (what, size, batch) for what in ("env", "engine") for size in "sl" for batch in (2048, 16384))
+    assert {job.size for job in gpu.plan(quick=True, sizes=("m",))[1]} == {"m"}
+
+
 def test_each_scan_is_long_enough_and_the_names_tell_the_variants_apart():
     for batch in (256, 2048, 16384, 65536):
         assert 25_000 <= batch * gpu.rollout_steps(batch) <= 700_000 and gpu.rollout_steps(batch) >= 10

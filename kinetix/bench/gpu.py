@@ -82,22 +82,26 @@ def rollout_steps(batch: int) -> int:
     return {256: 100, 2048: 50, 16384: 20}.get(batch, 10)
 
 
-def plan(quick: bool, flows: bool = True, train: bool = True) -> tuple[list[Job], list[Job], list[Job]]:
+def plan(quick: bool, flows: bool = True, train: bool = True, flag_variants: bool = True,
+         sizes: tuple[str, ...] = SIZES, batches: tuple[int, ...] | None = None
+         ) -> tuple[list[Job], list[Job], list[Job]]:
     """(the A/B, the grid, the PPO chunks). The A/B at batch 2,048: with `flows`, skip against fixed control
-    flow (SolverConfig.control_flow) for env and engine s and env l; always env s and l with each of
-    FLAG_VARIANTS' XLA flags, against the grid's env s and l at the same batch."""
-    batches = QUICK_BATCHES if quick else BATCHES
+    flow (SolverConfig.control_flow) for env and engine s and env l; with `flag_variants`, env s and l with each
+    of FLAG_VARIANTS' XLA flags, against the grid's env s and l at the same batch. `sizes` and `batches` narrow
+    the grid (a short call, e.g. the goal's points on another device kind)."""
+    batches = batches or (QUICK_BATCHES if quick else BATCHES)
     ab_batch = QUICK_BATCHES[-1] if quick else AB_BATCH
     ab_sizes = (("s", ("env", "engine")),) if quick else (("s", ("env", "engine")), ("l", ("env",)))
     ab = [Job(what, size, ab_batch, rollout_steps(ab_batch), flow)
           for size, whats in ab_sizes for what in whats for flow in ("skip", "fixed")] if flows else []
     ab += [Job("env", size, ab_batch, rollout_steps(ab_batch), None, flags) for flags in FLAG_VARIANTS
-           for size in ("s",) + (() if quick else ("l",))]
+           for size in ("s",) + (() if quick else ("l",))] if flag_variants else []
     # The goal's batches first (2,048 and 16,384 at s and l), so that a call cut short still has them.
     order = sorted(batches, key=lambda b: (b not in (2048, 16384), b not in (256,), b))
     grid = [Job(what, size, batch, rollout_steps(batch)) for batch in order for size in ("s", "l")
-            for what in ("env", "engine")]
-    grid += [Job(what, "m", batch, rollout_steps(batch)) for batch in order for what in ("env", "engine")]  # no goal
+            for what in ("env", "engine") if size in sizes]
+    grid += [Job(what, "m", batch, rollout_steps(batch)) for batch in order for what in ("env", "engine")
+             if "m" in sizes]  # in no goal
     chunks = [Job("train", TRAIN_SIZE, envs, 16 if quick else 64)
               for envs in (QUICK_TRAIN_ENVS if quick else TRAIN_ENVS)] if train else []
     return ab, grid, chunks
@@ -368,7 +372,9 @@ def main_run(args: argparse.Namespace) -> int:
 
     record({"what": "machine", **backend_report(), "devices": [str(d) for d in jax.devices()],
             "jax": jax.__version__, "python": sys.version.split()[0]})
-    ab, grid, train = plan(args.quick, flows=not args.no_flows, train=not args.no_train_bench)
+    ab, grid, train = plan(args.quick, flows=not args.no_flows, train=not args.no_train_bench,
+                           flag_variants=not args.no_flag_variants, sizes=tuple(args.sizes),
+                           batches=tuple(args.batches) if args.batches else None)
 
     # Stage 1: compile everything at once, tests beside; the general agent's runs start compiling too.
     stage = time.monotonic()
@@ -475,6 +481,11 @@ def main(argv: list[str] | None = None) -> int:
                      help="stop the training runs this many seconds before the budget ends (default 25)")
     run.add_argument("--no-flows", action="store_true", help="leave the skip/fixed control-flow A/B out")
     run.add_argument("--no-train-bench", action="store_true", help="leave `kinetix bench train`'s chunks out")
+    run.add_argument("--no-flag-variants", action="store_true", help="leave the XLA_FLAGS variants' A/B out")
+    run.add_argument("--sizes", nargs="+", choices=SIZES, default=list(SIZES), help="the grid's size classes")
+    run.add_argument("--batches", nargs="+", type=int, default=None,
+                     help=f"the grid's batches (default {', '.join(map(str, BATCHES))}; --quick: "
+                          f"{', '.join(map(str, QUICK_BATCHES))})")
     run.add_argument("--tests", default="", help="pytest's arguments, one string, run beside stage 1")
     run.add_argument("--train", nargs="*", default=[], help="run directories to resume (kinetix train --resume)")
     run.add_argument("--train-steps", type=int, default=None,

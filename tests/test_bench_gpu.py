@@ -1,6 +1,9 @@
 """kinetix.bench.gpu (bench/gpu.sh): the GPU call's plan and its report; the call itself needs a GPU (docs/gpu.md)."""
 
 import json
+import os
+import subprocess
+import sys
 
 from kinetix.bench import gpu
 
@@ -54,3 +57,10 @@ def test_the_table_compares_with_the_reference_only_where_there_is_one():
     assert lines[2].split()[-1] == "-" and "x ref" in lines[0]
     assert lines[3].split()[:5] == ["train", "m", "1024", "PPO", "86,000"]
     assert len(lines) == 4  # the error is not a row
+
+
+def test_the_compile_workers_and_tests_run_below_the_training_runs():
+    """The training program is the call's longest compile: the grid's workers and the tests yield the CPU to it."""
+    niceness = subprocess.run([sys.executable, "-c", "import os; print(os.nice(0))"], capture_output=True, text=True,
+                              preexec_fn=gpu.lower_priority, check=True).stdout
+    assert int(niceness) == min(19, os.nice(0) + gpu.BACKGROUND_NICENESS)

@@ -4,8 +4,9 @@ A GPU machine is lent for minutes, so everything is planned to fit one call and 
 
 1. compile: every benchmark program (env and engine rollouts at each size and batch, the PPO chunks) is
    compiled by `--workers` child processes at once into a fresh persistent compilation cache, while
-   tests/test_gpu.py runs beside them. On the 2-core CPU one rollout compiles in 6-9 s; one at a time, the
-   grid's 30-odd programs would take most of the call. Each program's compile time is reported as its
+   tests/test_gpu.py runs beside them (both at a lower priority than the general agent's runs, which compile
+   too). On the 2-core CPU one rollout compiles in 6-9 s; one at a time, the grid's 30-odd programs would take
+   most of the call. Each program's compile time is reported as its
    worker measured it (with the others compiling beside it: an upper bound).
 2. measure: one process, nothing else on the GPU but the tests if they are still running, takes each program
    from the cache and times it (kinetix.bench.engine.timed_runs: the median of 5 runs when one is short).
@@ -165,6 +166,17 @@ def compile_worker(jobs: list[Job], shared: str | None) -> None:
         print(json.dumps(line), flush=True)
 
 
+# Niceness of the compile workers and the tests: the general agent's training program is the call's longest compile
+# (4 min 38 s on the third H200 call, beside 27 grid programs and the tests on 16 cores, which left it 10 s of
+# training), and its compile is what the run's time goes to first; the grid's programs each take under a minute.
+BACKGROUND_NICENESS = 10
+
+
+def lower_priority() -> None:
+    """preexec_fn of the compile workers and the tests: below the training runs (BACKGROUND_NICENESS)."""
+    os.nice(BACKGROUND_NICENESS)
+
+
 def start_workers(jobs: list[Job], workers: int, shared: str | None, log_dir: Path) -> list[subprocess.Popen]:
     """Spread the jobs, biggest first, over `workers` child processes; jobs with XLA flags go to processes of
     their own (a share of the workers as large as their share of the jobs, at least one)."""
@@ -181,7 +193,8 @@ def start_workers(jobs: list[Job], workers: int, shared: str | None, log_dir: Pa
             if shared:
                 cmd += ["--shared", shared]
             log = open(log_dir / f"worker-{flags or 'default'}-{i}.log", "w")
-            procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=flag_env(flags)))
+            procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=flag_env(flags),
+                                          preexec_fn=lower_priority))
     return procs
 
 
@@ -384,7 +397,8 @@ def main_run(args: argparse.Namespace) -> int:
         tests = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                   *shlex.split(args.tests)],
                                  env={k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"},
-                                 stdout=open(out / "tests.log", "w"), stderr=subprocess.STDOUT)
+                                 stdout=open(out / "tests.log", "w"), stderr=subprocess.STDOUT,
+                                 preexec_fn=lower_priority)
     trainers = start_training(args.train, args.train_steps, logs) if args.train else []
     compiled: dict[str, float] = {}
     for proc in workers:

@@ -23,6 +23,9 @@
     store                   impulses for the next step; clamp and NaN guard (store; SimState.frozen counts
                             the bodies it froze)
 
+Each stage of step_batch runs under a `jax.named_scope` (jax2d_narrow_phase, jax2d_prepare, jax2d_substeps,
+jax2d_restitution, jax2d_joint_projection, jax2d_static_walls, jax2d_store; jax2d_broad_phase in big scenes):
+the compiled program's op names carry them, so a profile can count kernels and time per stage.
 The contact passes all run on the colour sweep of sweeps.py. Inside the step every body quantity is
 its own array over M padded bodies (math2d.Vel / Pose); M is the body count rounded up to even, the
 extra body a static dummy that padding contact slots point at. Every stage but the store runs on a
@@ -151,16 +154,19 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
         return _step_chunk_broad(layout, states, params, motor_actions, thruster_actions, config)
     M = layout.num_padded
     # The joint closure runs per scene; from there on every array is batch-last.
-    jointed = jax.vmap(lambda j: joint_connected(j, M)[layout.slot_a, layout.slot_b])(states.joints)
-    scene = _last(states)
-    reach = step_reach(scene, params.dt)
-    manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, reach)
-    loop, valid, _ = _prepare(layout, scene, params, _last(motor_actions), _last(thruster_actions), manifold,
-                              _last(jointed), reach, config)
+    with jax.named_scope("jax2d_narrow_phase"):
+        jointed = jax.vmap(lambda j: joint_connected(j, M)[layout.slot_a, layout.slot_b])(states.joints)
+        scene = _last(states)
+        reach = step_reach(scene, params.dt)
+        manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, reach)
+    with jax.named_scope("jax2d_prepare"):
+        loop, valid, _ = _prepare(layout, scene, params, _last(motor_actions), _last(thruster_actions), manifold,
+                                  _last(jointed), reach, config)
     pose, vel, cimp, jimp = _solve(layout, loop, config)
-    pose, vel, cimp, jimp, manifold, valid, dyn = _first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
-    cimp = jax.vmap(functools.partial(contact_solver.unpack_impulses, layout))(cimp)
-    return jax.vmap(store)(states, params, pose, vel, cimp, jimp, manifold, valid, dyn)
+    with jax.named_scope("jax2d_store"):
+        pose, vel, cimp, jimp, manifold, valid, dyn = _first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
+        cimp = jax.vmap(functools.partial(contact_solver.unpack_impulses, layout))(cimp)
+        return jax.vmap(store)(states, params, pose, vel, cimp, jimp, manifold, valid, dyn)
 
 
 def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams, motor_actions, thruster_actions,
@@ -170,7 +176,8 @@ def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams
     S = layout.num_slots
     scene = _last(states)
     reach = step_reach(scene, params.dt)
-    found = broad_phase.find(layout, scene, states.joints, params.speculative_distance, reach)
+    with jax.named_scope("jax2d_broad_phase"):
+        found = broad_phase.find(layout, scene, states.joints, params.speculative_distance, reach)
     scene = dataclasses.replace(scene, contacts=found.contacts)
     loop, valid, solved = _prepare(found.cand, scene, params, _last(motor_actions), _last(thruster_actions),
                                    found.manifold, found.jointed, reach, config)
@@ -319,14 +326,16 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, stiff: Sche
 def _solve(layout, loop: LoopData, config: SolverConfig):
     """Substeps, restitution, the joint projection and the static walls on the prepared loop data (batch-last)."""
     fixed = config.control_flow == control.FIXED
-    colours = schedule(loop.const, fixed)
-    stiff = schedule(loop.const, fixed, rows="stiff")
-    joints = joint_solver.schedule(loop.jc, fixed)
-    pose, vel, cimp, jimp = _substeps(layout, loop, colours, stiff, joints, config)
-    gap = functools.partial(contact_solver.current_separation, layout, loop.cc, pose, loop.pose0,
-                            None if fixed else jnp.int32(config.substeps))
-    vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, gap, loop.h, loop.restitution_threshold,
-                            colours, config.impact_sweeps, config.bounce_sweeps)
+    with jax.named_scope("jax2d_substeps"):
+        colours = schedule(loop.const, fixed)
+        stiff = schedule(loop.const, fixed, rows="stiff")
+        joints = joint_solver.schedule(loop.jc, fixed)
+        pose, vel, cimp, jimp = _substeps(layout, loop, colours, stiff, joints, config)
+    with jax.named_scope("jax2d_restitution"):
+        gap = functools.partial(contact_solver.current_separation, layout, loop.cc, pose, loop.pose0,
+                                None if fixed else jnp.int32(config.substeps))
+        vel, cimp = restitution(layout, loop.const, cimp, vel, loop.vel0, gap, loop.h, loop.restitution_threshold,
+                                colours, config.impact_sweeps, config.bounce_sweeps)
 
     def rejoin(pose, vel):  # the joint projection: velocities, and positions when configured
         if config.joint_projection is None:
@@ -336,17 +345,19 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
                                           joints, config.joint_position_projection)
         return (pose if shift is None else Pose(pose.x + shift.x, pose.y + shift.y, pose.a + shift.a)), vel
 
-    pose, vel = rejoin(pose, vel)
+    with jax.named_scope("jax2d_joint_projection"):
+        pose, vel = rejoin(pose, vel)
     if config.static_walls:  # nothing gets into or through a static body: continuous collision, then the push-out
-        pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, fixed)
-        pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, vel, loop.pose0,
-                                     loop.linear_slop, rejoin)
-        # Again: the push-out's joint projections move bodies too, and one that had no contact with a wall at
-        # the step's start has no point to be pushed out by (crowded scene 58, actions key 4, step 1063: a light
-        # triangle welded to a motor hub went from 15 cm above the floor to 3.5 cm into it).
-        # and last, a centre still inside a static body goes out the way it came (static_walls.centre_out)
-        pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.joints, loop.pose0, pose, loop.linear_slop,
-                                                       fixed)
+        with jax.named_scope("jax2d_static_walls"):
+            pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, fixed)
+            pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, vel, loop.pose0,
+                                         loop.linear_slop, rejoin)
+            # Again: the push-out's joint projections move bodies too, and one that had no contact with a wall at
+            # the step's start has no point to be pushed out by (crowded scene 58, actions key 4, step 1063: a light
+            # triangle welded to a motor hub went from 15 cm above the floor to 3.5 cm into it).
+            # and last, a centre still inside a static body goes out the way it came (static_walls.centre_out)
+            pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.joints, loop.pose0, pose, loop.linear_slop,
+                                                           fixed)
     return pose, vel, cimp, jimp
 
 

@@ -100,3 +100,19 @@ def test_the_check_finds_a_late_import_cycle_and_private_names():
 def test_step_reads_as_the_pipeline_in_at_most_400_lines():
     lines = len((PACKAGE / "step.py").read_text().splitlines())
     assert lines <= STEP_MAX_LINES, f"jax2d/step.py has {lines} lines: move a stage's details into its module"
+
+
+def test_each_stage_of_the_compiled_step_carries_its_named_scope():
+    """A profile attributes kernels to stages through the compiled program's op names (step.py's docstring)."""
+    import re
+
+    import jax.numpy as jnp
+
+    import jax2d
+
+    capacity = jax2d.Capacity(polygons=3, circles=1, joints=1, thrusters=1, max_vertices=4)
+    state = jax2d.empty_state(capacity)
+    text = jax2d.jit(jax2d.step).lower(state, jax2d.SimParams(), jnp.zeros(1), jnp.zeros(1)).compile().as_text()
+    scopes = set(re.findall(r"jax2d_[a-z_]+", text))
+    assert {"jax2d_narrow_phase", "jax2d_prepare", "jax2d_substeps", "jax2d_restitution", "jax2d_joint_projection",
+            "jax2d_static_walls", "jax2d_store"} <= scopes, scopes

@@ -18,11 +18,18 @@ Options are per backend: XLA refuses an option its backend does not know (on CUD
 with "No such compile option: 'xla_cpu_use_fusion_emitters'"), so each call compiles with the options
 of the platform it runs on (`options_for`), found the way JAX places the call (`call_platform`):
 committed arguments, then the jit's device, then `jax.default_device`, then the default backend.
+
+For experiments, `JAX2D_COMPILER_OPTIONS` (a JSON object, read when a function is jitted, so set it before the
+process starts) changes the options without editing code: a value replaces ours, and null removes one, which
+leaves XLA's default or XLA_FLAGS' value (kinetix.bench.gpu's "eager" variant removes the CUDA-graph options
+this way, so that a profile sees every kernel). A caller's `compiler_options` still win.
 """
 
 from __future__ import annotations
 
 import functools
+import json
+import os
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -206,8 +213,29 @@ class Jitted:
         return self if obj is None else functools.partial(self, obj)
 
 
+OPTIONS_VARIABLE = "JAX2D_COMPILER_OPTIONS"
+
+
+def environment_options() -> dict[str, Any]:
+    """The overrides in JAX2D_COMPILER_OPTIONS: a JSON object of option -> value (null: drop our value)."""
+    raw = os.environ.get(OPTIONS_VARIABLE, "").strip()
+    if not raw:
+        return {}
+    example = '{"xla_gpu_enable_command_buffer": null}'
+    try:
+        options = json.loads(raw)
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{OPTIONS_VARIABLE} is not JSON ({error}): give an object such as {example}") from None
+    if not isinstance(options, dict) or not all(isinstance(name, str) for name in options):
+        raise ValueError(f"{OPTIONS_VARIABLE} must be a JSON object of XLA option names, such as {example}; "
+                         f"got {raw[:200]!r}")
+    return options
+
+
 def jit(fun: Callable, /, **kwargs: Any) -> Jitted:
-    """`jax.jit(fun, **kwargs)` that compiles with COMPILER_OPTIONS (a caller's `compiler_options` win), less
-    those the call's platform does not accept, when called from Python; an ordinary nested jit inside a trace."""
-    options = {**COMPILER_OPTIONS, **(kwargs.pop("compiler_options", None) or {})}
+    """`jax.jit(fun, **kwargs)` that compiles with COMPILER_OPTIONS (then JAX2D_COMPILER_OPTIONS' overrides; a
+    caller's `compiler_options` win), less those the call's platform does not accept, when called from Python; an
+    ordinary nested jit inside a trace."""
+    options = {**COMPILER_OPTIONS, **environment_options(), **(kwargs.pop("compiler_options", None) or {})}
+    options = {name: value for name, value in options.items() if value is not None}
     return Jitted(fun, options, kwargs)

@@ -58,6 +58,29 @@ def test_jit_passes_the_engine_options_and_lets_the_caller_add_or_override(monke
     assert jax2d.COMPILER_OPTIONS == {**CPU_OPTIONS, **GPU_OPTIONS}  # the caller's dict did not leak in
 
 
+def test_the_environment_replaces_or_removes_options_and_the_caller_still_wins(monkeypatch) -> None:
+    seen = []
+    monkeypatch.setattr(compiling.jax, "jit", lambda fun, **kwargs: seen.append(kwargs) or fun)
+    monkeypatch.setattr(compiling, "only_platform", lambda: "cpu")
+    monkeypatch.setenv(compiling.OPTIONS_VARIABLE,
+                       '{"xla_cpu_use_fusion_emitters": true, "xla_cpu_experimental_ynn_fusion_type": null}')
+    jax2d.jit(len)("ab")
+    expected = {**CPU_OPTIONS, "xla_cpu_use_fusion_emitters": True}
+    del expected["xla_cpu_experimental_ynn_fusion_type"]  # null: XLA's default (or XLA_FLAGS') again
+    assert seen[1]["compiler_options"] == expected
+    jax2d.jit(len, compiler_options={"xla_cpu_use_fusion_emitters": False})("ab")
+    assert seen[3]["compiler_options"]["xla_cpu_use_fusion_emitters"] is False
+    monkeypatch.setenv(compiling.OPTIONS_VARIABLE, " ")
+    assert compiling.environment_options() == {}
+
+
+@pytest.mark.parametrize("value", ["xla_gpu_enable_command_buffer=", "[1, 2]", '{"a": 1'])
+def test_a_malformed_environment_override_is_a_clear_error(monkeypatch, value: str) -> None:
+    monkeypatch.setenv(compiling.OPTIONS_VARIABLE, value)
+    with pytest.raises(ValueError, match="JAX2D_COMPILER_OPTIONS .*object"):
+        jax2d.jit(len)
+
+
 @pytest.mark.parametrize("platform", ["gpu", "cuda", "rocm", "tpu", "GPU"])
 def test_no_cpu_option_reaches_another_platform(platform: str) -> None:
     """XLA refuses an option its backend lacks: every CUDA compile failed on xla_cpu_use_fusion_emitters."""

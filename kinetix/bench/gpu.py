@@ -12,7 +12,8 @@ A GPU machine is lent for minutes, so everything is planned to fit one call and 
    from the cache and times it (kinetix.bench.engine.timed_runs: the median of 5 runs when one is short).
    First the A/B at batch 2,048, each profiled (kernels per step, time by kernel) and rerun for bitwise
    equality: skip against fixed control flow (SolverConfig.control_flow, jax2d/control.py), and env s with
-   the GPU compile option given as XLA_FLAGS instead (FLAG_VARIANTS); then the grid at s and l, `kinetix
+   the GPU compile option given as XLA_FLAGS instead, and without CUDA graphs so that the profile sees each
+   kernel and counts them per stage of the step (FLAG_VARIANTS); then the grid at s and l, `kinetix
    bench train`'s PPO chunks, and the grid at m. On an H200 (docs/gpu.md) the 25-program grid compiled in
    64 s on 12 workers and measured in 126 s; the PPO chunks' compile took 160-173 s.
 3. train: the time left goes to the general agent's runs (`--train DIR ...`, resumed with `kinetix train
@@ -30,7 +31,9 @@ import dataclasses
 import glob
 import json
 import os
+import re
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -48,7 +51,13 @@ AB_BATCH = 2048  # the issue's furthest-behind point (s at 2,048), and l beside 
 # the graph's nodes scheduled by their data alone. The second GPU session measured it through XLA_FLAGS (env s
 # 2,048 +16 %, env l +14 % on an H200) and jax2d.compiling now asks for it per computation, so this variant should
 # measure the same as the grid's env s and l at 2,048 (else the per-computation option did not take).
-FLAG_VARIANTS = {"concurrent": "--xla_gpu_command_buffer_scheduling_mode=CONCURRENT"}
+# "eager": no CUDA graphs, each kernel launched on its own (slower), so that the profiler sees every kernel and
+# its profile's "by_scope" gives kernels and time per stage of the step (jax2d.step's named scopes): inside a
+# graph it sees only the graph's launch. The engine's per-computation graph options are removed for it through
+# JAX2D_COMPILER_OPTIONS (OPTION_VARIANTS), so that XLA_FLAGS' empty list takes.
+FLAG_VARIANTS = {"concurrent": "--xla_gpu_command_buffer_scheduling_mode=CONCURRENT",
+                 "eager": "--xla_gpu_enable_command_buffer="}
+OPTION_VARIANTS = {"eager": {"xla_gpu_enable_command_buffer": None, "xla_gpu_command_buffer_scheduling_mode": None}}
 # The issue's reference table (public Kinetix 3.0.2 with Jax2D 1.0.1 on one H100, JAX 0.11.2), steps/s.
 REFERENCE_H100 = {
     ("env", "l"): {256: 24.4e3, 2048: 147e3, 16384: 331e3},
@@ -151,6 +160,7 @@ def train_job(job: Job, timed: bool) -> dict:
 
 def compile_worker(jobs: list[Job], shared: str | None) -> None:
     """Compile each job into the persistent cache; print one JSON line per job."""
+    lower_priority()
     for job in jobs:
         start = time.perf_counter()
         try:
@@ -173,8 +183,14 @@ BACKGROUND_NICENESS = 10
 
 
 def lower_priority() -> None:
-    """preexec_fn of the compile workers and the tests: below the training runs (BACKGROUND_NICENESS)."""
+    """Called by a compile worker at its start: below the training runs (BACKGROUND_NICENESS). (Not a Popen
+    preexec_fn: that runs Python between fork and exec in a multithreaded process, which JAX warns may deadlock.)"""
     os.nice(BACKGROUND_NICENESS)
+
+
+def in_background(cmd: list[str]) -> list[str]:
+    """`cmd` under `nice` (below the training runs), where the system has it."""
+    return ["nice", "-n", str(BACKGROUND_NICENESS), *cmd] if shutil.which("nice") else cmd
 
 
 def start_workers(jobs: list[Job], workers: int, shared: str | None, log_dir: Path) -> list[subprocess.Popen]:
@@ -193,16 +209,20 @@ def start_workers(jobs: list[Job], workers: int, shared: str | None, log_dir: Pa
             if shared:
                 cmd += ["--shared", shared]
             log = open(log_dir / f"worker-{flags or 'default'}-{i}.log", "w")
-            procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=flag_env(flags),
-                                          preexec_fn=lower_priority))
+            procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=flag_env(flags)))
     return procs
 
 
 def flag_env(flags: str) -> dict[str, str]:
-    """The environment of a child process for jobs with these XLA flags (FLAG_VARIANTS)."""
+    """The environment of a child process for jobs with these XLA flags (FLAG_VARIANTS, and OPTION_VARIANTS'
+    overrides of jax2d's compile options)."""
+    from jax2d.compiling import OPTIONS_VARIABLE
+
     env = dict(os.environ)
     if flags:
         env["XLA_FLAGS"] = " ".join(filter(None, (env.get("XLA_FLAGS", ""), FLAG_VARIANTS[flags])))
+    if flags in OPTION_VARIANTS:
+        env[OPTIONS_VARIABLE] = json.dumps(OPTION_VARIANTS[flags])
     return env
 
 
@@ -243,10 +263,60 @@ def measure_worker(jobs: list[Job], shared: str | None, compiled: dict, profile_
                   flush=True)
 
 
-def profile(run, directory: Path, steps: int) -> dict:
-    """One run under jax.profiler: per trace line, the events, their total time and the 12 costliest names.
+STAGE_SCOPE = re.compile(r"\b((?:jax2d|env)_[a-z_]+)")
 
-    The device lines hold the kernels (and copies) the GPU ran; the host's, the launches and waits."""
+
+def compiled_text(run) -> str | None:
+    """The optimised HLO of the compiled program a `compile_rollout` run() calls (held in its closure), or None."""
+    for cell in getattr(run, "__closure__", None) or ():
+        try:
+            value = cell.cell_contents
+        except ValueError:  # an empty cell
+            continue
+        if hasattr(value, "as_text"):
+            return value.as_text()
+    return None
+
+
+def kernel_stages(hlo_text: str) -> dict[str, str]:
+    """Instruction name -> the innermost stage scope in its op name (jax2d_substeps, env_goal, ...), under the
+    names a trace gives its kernels: the HLO's ("loop_add_fusion.14", CPU traces) and with '_' for '.' (GPU)."""
+    stages = {}
+    for line in hlo_text.splitlines():
+        match = re.match(r'\s*(?:ROOT )?%?([\w.\-]+) = .*?op_name="([^"]*)"', line)
+        if match:
+            found = STAGE_SCOPE.findall(match[2])
+            if found:
+                stages[match[1]] = stages[match[1].replace(".", "_")] = found[-1]
+    return stages
+
+
+def by_stage(data, stages: dict[str, str], steps: int) -> dict:
+    """Kernels per step and milliseconds in each stage, over every trace line, for the events named in `stages`;
+    "unattributed" counts the device lines' other events (copies, graph launches, kernels with no scope)."""
+    totals: dict[str, list[float]] = {}
+    unattributed = 0
+    for plane in data.planes:
+        for line in plane.lines:
+            for event in line.events:
+                stage = stages.get(event.name)
+                if stage is None:
+                    unattributed += "/device:" in plane.name
+                    continue
+                entry = totals.setdefault(stage, [0, 0.0])
+                entry[0] += 1
+                entry[1] += event.duration_ns
+    out = {stage: {"per_step": round(count / steps, 1), "ms": round(ns / 1e6, 3)}
+           for stage, (count, ns) in sorted(totals.items(), key=lambda kv: -kv[1][1])}
+    return {**out, "unattributed_device_events_per_step": round(unattributed / steps, 1)}
+
+
+def profile(run, directory: Path, steps: int) -> dict:
+    """One run under jax.profiler: per trace line, the events, their total time and the 12 costliest names; and
+    kernels and time per stage of the step ("by_stage", from the compiled program's named scopes).
+
+    The device lines hold the kernels (and copies) the GPU ran; the host's, the launches and waits. Inside a CUDA
+    graph the profiler sees only the graph's launches: the "eager" variant (FLAG_VARIANTS) shows every kernel."""
     import jax
     from jax.profiler import ProfileData
 
@@ -278,7 +348,9 @@ def profile(run, directory: Path, steps: int) -> dict:
                           "events_per_step": round(count / steps, 1), "busy_ms": round(busy / 1e6, 3),
                           "span_ms": round((last - first) / 1e6, 3),
                           "top": [[name[:120], c, round(t / 1e6, 3)] for name, (c, t) in top]})
-    return {"steps": steps, "lines": lines}
+    text = compiled_text(run)
+    return {"steps": steps, "lines": lines,
+            "by_stage": by_stage(data, kernel_stages(text), steps) if text else {"error": "no compiled program"}}
 
 
 # ---------------------------------------------------------------- stage 3: the general agent's runs
@@ -394,11 +466,10 @@ def main_run(args: argparse.Namespace) -> int:
     workers = start_workers(ab + grid + train, args.workers, args.shared, logs)
     tests = None
     if args.tests:
-        tests = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                                  *shlex.split(args.tests)],
+        tests = subprocess.Popen(in_background([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                                *shlex.split(args.tests)]),
                                  env={k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"},
-                                 stdout=open(out / "tests.log", "w"), stderr=subprocess.STDOUT,
-                                 preexec_fn=lower_priority)
+                                 stdout=open(out / "tests.log", "w"), stderr=subprocess.STDOUT)
     trainers = start_training(args.train, args.train_steps, logs) if args.train else []
     compiled: dict[str, float] = {}
     for proc in workers:
@@ -430,7 +501,8 @@ def main_run(args: argparse.Namespace) -> int:
                                    timeout=max(1.0, min(30.0 + 15.0 * len(jobs), left() - args.reserve)))
             lines = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
             for line in lines:
-                record({**line, "xla_flags": FLAG_VARIANTS[flags]})
+                record({**line, "xla_flags": FLAG_VARIANTS[flags], **(
+                    {"compiler_option_overrides": OPTION_VARIANTS[flags]} if flags in OPTION_VARIANTS else {})})
             if child.returncode or not lines:
                 record({"what": "error", "job": f"flags {flags}", "error": child.stderr[-2000:]})
         except subprocess.TimeoutExpired:

@@ -52,7 +52,7 @@ AB_BATCH = 2048  # the issue's furthest-behind point (s at 2,048), and l beside 
 # 2,048 +16 %, env l +14 % on an H200) and jax2d.compiling now asks for it per computation, so this variant should
 # measure the same as the grid's env s and l at 2,048 (else the per-computation option did not take).
 # "eager": no CUDA graphs, each kernel launched on its own (slower), so that the profiler sees every kernel and
-# its profile's "by_scope" gives kernels and time per stage of the step (jax2d.step's named scopes): inside a
+# its profile's "by_stage" gives kernels and time per stage of the step (jax2d.step's named scopes): inside a
 # graph it sees only the graph's launch. The engine's per-computation graph options are removed for it through
 # JAX2D_COMPILER_OPTIONS (OPTION_VARIANTS), so that XLA_FLAGS' empty list takes.
 FLAG_VARIANTS = {"concurrent": "--xla_gpu_command_buffer_scheduling_mode=CONCURRENT",
@@ -293,7 +293,8 @@ def kernel_stages(hlo_text: str) -> dict[str, str]:
 
 def by_stage(data, stages: dict[str, str], steps: int) -> dict:
     """Kernels per step and milliseconds in each stage, over every trace line, for the events named in `stages`;
-    "unattributed" counts the device lines' other events (copies, graph launches, kernels with no scope)."""
+    "unattributed_device_events_per_step" counts the device lines' other events (copies, graph launches, kernels
+    with no scope)."""
     totals: dict[str, list[float]] = {}
     unattributed = 0
     for plane in data.planes:

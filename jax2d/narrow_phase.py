@@ -149,9 +149,9 @@ def joint_connected(joints: Joints, M: int) -> jax.Array:
     return labels[:, None] == labels[None, :]
 
 
-def joint_connected_batch_last(joints: Joints, M: int) -> jax.Array:
-    """(M, M, *batch) joint_connected for batch-last joints (every leaf's last axes are the batch)."""
-    per_scene = functools.partial(joint_connected, M=M)
+def joint_labels_batch_last(joints: Joints, M: int) -> jax.Array:
+    """(M, *batch) joint_labels for batch-last joints (every leaf's last axes are the batch)."""
+    per_scene = functools.partial(joint_labels, M=M)
     for _ in range(joints.a.ndim - 1):
         per_scene = jax.vmap(per_scene, in_axes=-1, out_axes=-1)
     return per_scene(joints)

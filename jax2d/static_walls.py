@@ -1,7 +1,8 @@
 """Continuous collision and walls at the end of a step: nothing gets through a body, nor into a wall (issues 28, 35).
 
 Three position stages run after the joint projection (step.py's _solve), on batch-last arrays, in the order
-sweep back, push out, sweep back, centre out:
+sweep back, push out, sweep back, centre out. The second sweep back also takes every centre whose path, in a
+polygon's frame, went through that polygon, at any speed (_centres_inside's "through"):
 
     sweep back      continuous collision for a body that moved farther in the step than the speculative
                     margin covered (a light body sent off by a heavy fast one): its core disc (CORE_FRACTION
@@ -9,17 +10,21 @@ sweep back, push out, sweep back, centre out:
                     (Cyrus-Beck clipping against the edge half-planes grown by the core radius) and circle it
                     collides with, static or dynamic (a moving one in its own frame: the segment from the
                     centre's place relative to it at the step's start to that at the end); where it enters one
-                    from outside, the body goes back to the entry fraction of its move (position and angle),
-                    keeping its velocity, so the next step's contact resolves the impact (Box2D v3's continuous
-                    collision, simplified; Box2D sweeps fast bodies against static ones and "bullets" against
-                    dynamic ones: here every fast body is a bullet).
+                    from outside, the body goes back to that entry point, placed by the other body's end pose,
+                    its angle to the same fraction of its turn, keeping its velocity, so the next step's contact
+                    resolves the impact (Box2D v3's continuous collision, simplified; Box2D sweeps fast bodies
+                    against static ones and "bullets" against dynamic ones: here every fast body is a bullet).
     push out        non-linear Gauss-Seidel position correction of the contact points with one static side:
                     a dynamic body deeper in a static one than PUSH_TOLERANCE linear slops is moved out,
                     along the step's contact normals, to that depth (at most MAX_PUSH per point and sweep). The joint
                     projection solves all joints exactly but ignores contacts, so motors at full power pushed
                     a box 20 cm into a floor in one step (tests/jax2d/accuracy.crowded_walls).
-    centre out      a dynamic body whose centre still ends inside a static polygon goes out through the face
-                    it came in by, with every body its joints connect it to, by one translation (centre_out).
+    centre out      a dynamic body whose centre still ends inside a polygon it collides with, static or
+                    dynamic, goes out through the face it came in by (in that polygon's frame), with every body
+                    its joints connect it to, by one translation (centre_out). A dynamic polygon counts because
+                    a light body squeezed by a heavy one into a thin free plank was crushed through it: the
+                    contact sweeps move momentum through a light body only about its own mass at a time.
+                    Dynamic circles do not count (a circle is never thin), nor do static ones.
 
 Each is skipped, batch-wide (lax.cond), in steps where no scene of the batch needs it.
 """
@@ -35,9 +40,8 @@ import jax.numpy as jnp
 from jax2d import contact_solver
 from jax2d.control import if_any
 from jax2d.math2d import Pose, Vel
-from jax2d.narrow_phase import joint_connected_batch_last
 from jax2d.pairs import ContactLayout
-from jax2d.state import Bodies, Joints, modes_agree
+from jax2d.state import Bodies, modes_agree
 from jax2d.sweeps import ROW, Block, Rows, pack_rows, sweep, velocity_along
 
 # Continuous collision sweeps a disc of this fraction of a body's inner radius (a circle's radius, a polygon's
@@ -59,7 +63,12 @@ PUSH_ROUNDS = 10
 MAX_PUSH = 0.2
 # centre_out leaves a centre this many linear slops outside the face it goes out through.
 CENTRE_MARGIN = 0.2
-CENTRE_ROUNDS = 2
+# centre_out's rounds, each True where dynamic polygons count as well as static ones: first out of any polygon,
+# then out of static ones only, twice (a corner where two walls overlap), so the walls have the last word. With
+# dynamic polygons in every round, crowded scene 245 (actions key 3) ended a step with a welded triangle's
+# centre in the floor: a body pushed into the floor and the triangle were each inside the other, and moving
+# the triangle's assembly out of that body used up the rounds.
+CENTRE_ROUNDS = (True, False, False)
 _FAR = 1e9  # the separation given to points that the push-out leaves alone
 
 
@@ -74,11 +83,13 @@ class Shapes(NamedTuple):
     core: jax.Array  # (M, *batch) the swept disc's radius; 0 for static bodies and the padding
     reach: jax.Array  # (M, *batch) how far the speculative margin covered each body's travel (m)
     dynamic: jax.Array  # (M, *batch) active and movable (False for the padding)
-    static: jax.Array  # (P, *batch) active polygons that never move
+    polygon: jax.Array  # (P, *batch) active polygons, static or dynamic: no dynamic centre may end inside one
+    group: jax.Array  # (M, *batch) joint groups (narrow_phase.joint_labels): equal for bodies joints link
 
 
-def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
-    """Shapes from batch-last bodies; reach: (N, *batch) narrow_phase.step_reach; speculative: (*batch)."""
+def shapes(b: Bodies, group, reach, speculative, M: int) -> Shapes:
+    """Shapes from batch-last bodies; group: (M, *batch) narrow_phase.joint_labels; reach: (N, *batch)
+    narrow_phase.step_reach; speculative: (*batch)."""
     v = b.vertices  # (P, V, 2, *batch)
     f = _faces(v, b.n_vertices)
     # Distance from the centre of mass (the frame's origin) to each edge's line: cross(v, e) / |e| (CCW).
@@ -89,7 +100,7 @@ def shapes(b: Bodies, reach, speculative, M: int) -> Shapes:
     core = jnp.pad(jnp.where(dynamic, CORE_FRACTION * jnp.maximum(inner, 0.0), 0.0), pad)
     P = v.shape[0]
     return Shapes(v, b.n_vertices, b.radius, b.collision_mode, b.active, core, jnp.pad(reach + speculative, pad),
-                  jnp.pad(dynamic, pad), b.active[:P] & (b.inv_mass[:P] == 0.0))
+                  jnp.pad(dynamic, pad), b.active[:P], group)
 
 
 def _used(V: int, n_vertices):
@@ -106,17 +117,17 @@ def _next_vertex(v, n_vertices):
     return jnp.where(last, v[:, :1], jnp.roll(v, -1, axis=1))
 
 
-def sweep_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fixed: bool = False) -> Pose:
+def sweep_back(s: Shapes, pose0: Pose, pose: Pose, fixed: bool = False) -> Pose:
     """Put every fast body that entered another body's grown core back at the entry (module docstring).
 
-    pose0, pose: (M, *batch) the step's start and end poses; joints: batch-last. The bodies that a chain of
-    joints connects (narrow_phase.joint_connected per scene) are found only when some body is fast.
+    pose0, pose: (M, *batch) the step's start and end poses. Bodies that a chain of joints connects are
+    not swept against each other.
     The other body may move too: the fast body's centre is followed in the other's frame, from where it is at
     the step's start (in the other's start pose) to where it is at the end (in its end pose), a straight
     segment there; a static body's two poses are the same.
     """
     fast = _fast(s, pose0, pose)
-    return if_any(fixed, fast, lambda: _swept_back(s, joints, pose0, pose, fast), lambda: pose)  # (control.py)
+    return if_any(fixed, fast, lambda: _swept_back(s, pose0, pose, fast), lambda: pose)  # (control.py)
 
 
 def _fast(s: Shapes, pose0: Pose, pose: Pose):
@@ -128,37 +139,38 @@ def _fast(s: Shapes, pose0: Pose, pose: Pose):
     return (s.core > 0.0) & (travel > s.reach) & (travel > s.core)
 
 
-def _swept_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fast) -> Pose:
-    """sweep_back's work, for the bodies in `fast` (the others keep their pose, bitwise)."""
-    dx, dy = pose.x - pose0.x, pose.y - pose0.y
+def _swept_back(s: Shapes, pose0: Pose, pose: Pose, fast, through=None) -> Pose:
+    """sweep_back's work, for the bodies in `fast` (the others keep their pose, bitwise), and for the pairs in
+    `through` (M, P, *batch): a centre that may have gone through a polygon goes back to where it entered it
+    (swept as a disc of radius 0, since a fast body's core may have started inside the grown polygon).
+
+    A body goes back to its entry point relative to the body it entered, placed by that body's end pose (its
+    angle to the same fraction of its turn). Going back along its own path instead left a moving body
+    behind: a fast free plank, pushed by a thrusting ball, swept back against the ball by 11 cm of its own
+    travel, ended behind the ball, which was then through it."""
     P = s.vertices.shape[0]
     N = s.active.shape[0]
     M = pose.x.shape[0]
     mode = jnp.pad(s.collision_mode, [(0, M - N)] + [(0, 0)] * (s.collision_mode.ndim - 1))
     active = jnp.pad(s.active, [(0, M - N)] + [(0, 0)] * (s.active.ndim - 1))
-    linked = joint_connected_batch_last(joints, M)  # includes each body itself
+    linked = _linked(s.group)  # includes each body itself
     # (M body, M other, *batch)
-    may = modes_agree(mode[:, None], mode[None, :]) & ~linked & active[None, :] & fast[:, None]
+    may = modes_agree(mode[:, None], mode[None, :]) & ~linked & active[None, :]
     r = s.core[:, None]
-    t = jnp.ones_like(pose.x)
+    times, entry_x, entry_y = [], [], []  # per (body, other): the entry fraction (1: none), the entry in the world
     if P:
         (x0, y0), (x1, y1) = _centre_in_frames(pose0, P), _centre_in_frames(pose, P)
         qx, qy = x1 - x0, y1 - y0
         f = _faces(s.vertices, s.n_vertices)  # (P, V, *batch), body frame
-        nx, ny = f.nx, f.ny
-        offset = nx * f.vx + ny * f.vy  # (P, V, *batch): inside is n . x <= offset
-        used = f.used[None]  # (1, P, V, *batch)
-        # Every (body, polygon, edge): the segment x0 + t q against n . x <= offset + r.
-        num = offset[None] + r[:, :, None] - (nx[None] * x0[:, :, None] + ny[None] * y0[:, :, None])
-        den = nx[None] * qx[:, :, None] + ny[None] * qy[:, :, None]
-        entering, leaving = used & (den < 0.0), used & (den > 0.0)
-        ratio = num / jnp.where(den == 0.0, 1.0, den)
-        t_in = jnp.max(jnp.where(entering, ratio, 0.0), axis=2)
-        t_out = jnp.min(jnp.where(leaving, ratio, 1.0), axis=2)
-        outside = jnp.any(used & (num < 0.0), axis=2)  # the core starts outside the grown polygon
-        parallel_out = jnp.any(used & (den == 0.0) & (num < 0.0), axis=2)
-        hit = outside & ~parallel_out & (t_in <= t_out) & (t_in < 1.0) & may[:, :P]
-        t = jnp.minimum(t, jnp.min(jnp.where(hit, t_in, 1.0), axis=1))
+        t_in = _entry(f, x0, y0, qx, qy, r, may[:, :P] & fast[:, None])
+        if through is not None:
+            t_in = jnp.minimum(t_in, _entry(f, x0, y0, qx, qy, 0.0, may[:, :P] & through))
+        ex, ey = x0 + t_in * qx, y0 + t_in * qy  # the entry in the polygon's frame
+        cos, sin = jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])
+        times.append(t_in)
+        entry_x.append(pose.x[None, :P] + cos * ex - sin * ey)
+        entry_y.append(pose.y[None, :P] + sin * ex + cos * ey)
+    may = may & fast[:, None]
     C = N - P
     if C:
         R = s.radius[None]
@@ -171,11 +183,39 @@ def _swept_back(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, fast) -> Pos
         disc = bq * bq - 4.0 * a * cq
         t_in = (-bq - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.maximum(2.0 * a, 1e-12)
         hit = (cq > 0.0) & (disc >= 0.0) & (t_in >= 0.0) & (t_in < 1.0) & may[:, P:N]
-        t = jnp.minimum(t, jnp.min(jnp.where(hit, t_in, 1.0), axis=1))
+        times.append(jnp.where(hit, t_in, 1.0))
+        entry_x.append(pose.x[None, P:N] + fx + t_in * qx)
+        entry_y.append(pose.y[None, P:N] + fy + t_in * qy)
+    if not times:
+        return pose
+    times = jnp.concatenate(times, axis=1)  # (M, N, *batch)
+    t = jnp.min(times, axis=1)
     back = t < 1.0  # (a lerp at t = 1 is not bitwise the end pose: a body's result would depend on its batch)
-    return Pose(jnp.where(back, pose0.x + t * dx, pose.x), jnp.where(back, pose0.y + t * dy, pose.y),
+    first = _first_of(times == t[:, None], axis=1)  # the body it entered first
+    x = jnp.sum(jnp.where(first, jnp.concatenate(entry_x, axis=1), 0.0), axis=1)
+    y = jnp.sum(jnp.where(first, jnp.concatenate(entry_y, axis=1), 0.0), axis=1)
+    return Pose(jnp.where(back, x, pose.x), jnp.where(back, y, pose.y),
                 jnp.where(back, pose0.a + t * (pose.a - pose0.a), pose.a))
 
+
+def _entry(f: _Faces, x0, y0, qx, qy, r, may):
+    """(M, P, *batch) where each centre's segment x0 + t q (in each polygon's frame) first enters the polygon
+    grown by r (Cyrus-Beck clipping against the edge half-planes n . x <= offset + r), for a core that starts
+    outside it; 1 where it does not, or where `may` is False."""
+    nx, ny = f.nx, f.ny
+    offset = nx * f.vx + ny * f.vy  # (P, V, *batch): inside is n . x <= offset
+    used = f.used[None]  # (1, P, V, *batch)
+    grown = r[:, :, None] if jnp.ndim(r) else r
+    num = offset[None] + grown - (nx[None] * x0[:, :, None] + ny[None] * y0[:, :, None])
+    den = nx[None] * qx[:, :, None] + ny[None] * qy[:, :, None]
+    entering, leaving = used & (den < 0.0), used & (den > 0.0)
+    ratio = num / jnp.where(den == 0.0, 1.0, den)
+    t_in = jnp.max(jnp.where(entering, ratio, 0.0), axis=2)
+    t_out = jnp.min(jnp.where(leaving, ratio, 1.0), axis=2)
+    outside = jnp.any(used & (num < 0.0), axis=2)  # the core starts outside the grown polygon
+    parallel_out = jnp.any(used & (den == 0.0) & (num < 0.0), axis=2)
+    hit = outside & ~parallel_out & (t_in <= t_out) & (t_in < 1.0) & may
+    return jnp.where(hit, t_in, 1.0)
 
 
 def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const, impulses, plan, pose: Pose,
@@ -237,58 +277,65 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
     return if_any(plan.fixed, sep < -allowed, functools.partial(run, pose, vel, sep), lambda: pose)
 
 
-def sweep_back_then_centre_out(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
+def sweep_back_then_centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
     """sweep_back, then centre_out, in one conditional on whether some scene needs either: the step's last
     stage. On the CPU the conditional costs a step from a Python loop about 27 us at l whether it is taken or not
     (the centre test itself about 1 us; docs/engine.md, 27 Nov 2026); one conditional for both stages measured the
     same as one each."""
     if not s.vertices.shape[0]:  # no polygons, so no static polygon to be inside
-        return sweep_back(s, joints, pose0, pose, fixed)
+        return sweep_back(s, pose0, pose, fixed)
     fast = _fast(s, pose0, pose)
     faces = _faces(s.vertices, s.n_vertices)
-    inside = _centres_inside(s, faces, pose)
+    inside, through = _centres_inside(s, faces, pose, pose0)
 
     def run():
-        swept = _swept_back(s, joints, pose0, pose, fast)
-        return _moved_out(s, faces, joints, pose0, swept, slop, fixed, CENTRE_ROUNDS)
+        swept = _swept_back(s, pose0, pose, fast, through)
+        return _moved_out(s, faces, pose0, swept, slop, fixed, CENTRE_ROUNDS)
 
-    return if_any(fixed, jnp.any(fast) | jnp.any(inside), run, lambda: pose)
+    return if_any(fixed, jnp.any(fast) | jnp.any(inside) | jnp.any(through), run, lambda: pose)
 
 
-def centre_out(s: Shapes, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
-    """Move a dynamic body whose centre ended the step strictly inside a static polygon it collides with out
-    through the face it came in by, to CENTRE_MARGIN slops outside it (issue 35's walls criterion).
+def centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
+    """Move a dynamic body whose centre ended the step strictly inside a polygon it collides with (static,
+    or dynamic and not linked to it by joints) out through the face it came in by, to CENTRE_MARGIN slops
+    outside it (issue 35's walls criterion, and its thin dynamic bodies).
 
     The last stage, for what the others leave. In crowded scene 245 (actions key 3) a 16 g triangle welded to
     two heavier bodies that motors at full power spin ends a step with its centre 25 cm deep in the floor: the
     joint projection solves the welds exactly and ignores contacts, the push-out turns so light a body about
     its centre rather than moving it, and the sweep back skips a body whose core starts inside.
 
-    - The face: the one the centre was farthest outside of at the step's start (its way in), else, for a
-      centre that started inside, the one it is nearest to now.
+    - The face: the one the centre was farthest outside of at the step's start (its way in, in the polygon's
+      frame at the start: for a moving polygon, relative to it), else, for a centre that started inside, the
+      one it is nearest to now.
+    - Only the body whose centre is inside moves, whatever the masses: it is the one that was crushed or
+      pushed into the other (speed_up_tunnel in tests/jax2d/accuracy.py: a 0.8 g ball between a 0.9 kg box
+      and a 60 g plank).
+    - The rounds (CENTRE_ROUNDS): the first out of any polygon, then two out of static ones only, so that a
+      body moved out of a dynamic polygon into a wall comes out of the wall again.
     - The move: the centre's depth below that face and the margin, for the body and every dynamic body joined
       to it by a chain of joints, by the same translation, so no joint opens (in an assembly with two such
       bodies, the larger move). Moving the triangle alone opened its welds by 25 cm, and the next steps' joint
       solve closed them with speeds that blew the scene apart.
     - Velocities are kept: the next step's contacts take what points into the wall.
     - A centre in two static polygons (a corner where the floor and a wall overlap) goes out of the deeper one,
-      then of the other: a second round runs where the first moved a body.
+      then of the other.
 
     Each round runs, batch-wide, only in steps where some scene has a centre inside (jax2d/control.py);
     testing for one is what it costs in every step.
     """
-    return _moved_out(s, _faces(s.vertices, s.n_vertices), joints, pose0, pose, slop, fixed, CENTRE_ROUNDS)
+    return _moved_out(s, _faces(s.vertices, s.n_vertices), pose0, pose, slop, fixed, CENTRE_ROUNDS)
 
 
-def _moved_out(s: Shapes, faces: _Faces, joints: Joints, pose0: Pose, pose: Pose, slop, fixed: bool,
-               rounds: int) -> Pose:
-    """centre_out's rounds, each in a conditional on whether some centre is inside; a round runs only where
-    the one before moved a body."""
-    inside = _centres_inside(s, faces, pose)
+def _moved_out(s: Shapes, faces: _Faces, pose0: Pose, pose: Pose, slop, fixed: bool,
+               rounds: tuple[bool, ...]) -> Pose:
+    """centre_out's rounds (CENTRE_ROUNDS), each in a conditional on whether some centre is inside a polygon
+    that the round counts."""
+    inside, _ = _centres_inside(s, faces, pose, dynamic_too=rounds[0])
 
     def run():
-        moved = _move_out(s, faces, joints, pose0, pose, inside, slop)
-        return moved if rounds == 1 else _moved_out(s, faces, joints, pose0, moved, slop, fixed, rounds - 1)
+        moved = _move_out(s, faces, pose0, pose, inside, slop)
+        return moved if len(rounds) == 1 else _moved_out(s, faces, pose0, moved, slop, fixed, rounds[1:])
 
     return if_any(fixed, inside, run, lambda: pose)
 
@@ -329,27 +376,55 @@ def _outside_by(f: _Faces, x, y):
     return f.ex[None] * (f.vy[None] - y[:, :, None]) - f.ey[None] * (f.vx[None] - x[:, :, None])
 
 
-def _centres_inside(s: Shapes, f: _Faces, pose: Pose):
-    """(M, P, *batch) dynamic centres strictly inside a static polygon they collide with, as
-    tests/jax2d/accuracy._inside_static counts them (bodies joined to the polygon excepted later)."""
+def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None, dynamic_too: bool = True):
+    """(M, P, *batch) dynamic centres strictly inside a polygon they collide with and are not linked to by
+    joints (for static polygons, as tests/jax2d/accuracy._inside_static counts them; dynamic_too=False: only
+    those); with pose0, also (M, P, *batch) the centres that may have gone through such a polygon in the step,
+    else None.
+
+    Through: the centre's segment in the polygon's frame (from where it was relative to the polygon at the
+    step's start to where it is at the end) enters one edge's half-plane, leaves another's, and lies wholly
+    outside none. That holds for every segment that crosses the polygon and for a few that pass a corner;
+    _entry's clipping tells them apart, in the conditional. (Clipping here, in every step, cost env s at
+    batch 256 a fifth of its speed: a division per edge, each its own kernel.) A light body that a heavy one
+    crushed through a thin free plank within one step, or a body fast relative to a polygon that moved, ends
+    outside with nothing inside to see; the speculative margin and the sweep back's speed test both look at
+    a body's own speed.
+    """
     P, V = f.vx.shape[:2]
     M = pose.x.shape[0]
     x, y = _centre_in_frames(pose, P)
     mode = jnp.pad(s.collision_mode, [(0, M - s.collision_mode.shape[0])] + [(0, 0)] * (s.collision_mode.ndim - 1))
-    inside = s.static[None] & s.dynamic[:, None] & modes_agree(mode[:, None], mode[None, :P])
+    polygon = s.polygon if dynamic_too else s.polygon & ~s.dynamic[:P]
+    may = (polygon[None] & s.dynamic[:, None] & modes_agree(mode[:, None], mode[None, :P])
+           & (s.group[:, None] != s.group[None, :P]))
+    inside = may
     # Edge by edge (jnp.all over the vertex axis, written out): the test runs in every step.
     for k in range(V):
-        ahead = f.ex[None, :, k] * (f.vy[None, :, k] - y) - f.ey[None, :, k] * (f.vx[None, :, k] - x)
-        inside = inside & ((ahead < 0.0) | ~f.used[None, :, k])
-    return inside
+        inside = inside & ((_ahead(f, k, x, y) < 0.0) | ~f.used[None, :, k])
+    if pose0 is None:
+        return inside, None
+    x0, y0 = _centre_in_frames(pose0, P)
+    entered = left = missed = jnp.zeros_like(may)
+    for k in range(V):
+        used = f.used[None, :, k]
+        a, b = _ahead(f, k, x0, y0), _ahead(f, k, x, y)  # > 0: outside the edge, at the start and at the end
+        entered = entered | (used & (a > 0.0) & (b <= 0.0))
+        left = left | (used & (a <= 0.0) & (b > 0.0))
+        missed = missed | (used & (a > 0.0) & (b > 0.0))  # wholly outside this edge's half-plane
+    return inside, may & entered & left & ~missed
 
 
-def _move_out(s: Shapes, f: _Faces, joints: Joints, pose0: Pose, pose: Pose, inside, slop) -> Pose:
-    """One round of centre_out: each body (with its assembly) out of the static polygon it is deepest in."""
+def _ahead(f: _Faces, k: int, x, y):
+    """(M, P, *batch) how far centres (x, y) in the polygons' frames are outside edge k, times its length."""
+    return f.ex[None, :, k] * (f.vy[None, :, k] - y) - f.ey[None, :, k] * (f.vx[None, :, k] - x)
+
+
+def _move_out(s: Shapes, f: _Faces, pose0: Pose, pose: Pose, inside, slop) -> Pose:
+    """One round of centre_out: each body (with its assembly) out of the polygon it is deepest in."""
     P, V = f.vx.shape[:2]
-    M = pose.x.shape[0]
-    connected = joint_connected_batch_last(joints, M)  # (M, M, *batch), each body with itself
-    hit = inside & ~connected[:, :P]
+    connected = _linked(s.group)  # (M, M, *batch), each body with itself
+    hit = inside
     length, nx, ny = f.length[None], f.nx[None], f.ny[None]  # outward normals, polygon frame
     used = f.used[None]
     before = jnp.where(used, _outside_by(f, *_centre_in_frames(pose0, P)) / length, -jnp.inf)  # signed distances
@@ -374,6 +449,11 @@ def _move_out(s: Shapes, f: _Faces, joints: Joints, pose0: Pose, pose: Pose, ins
     gx = jnp.sum(jnp.where(chosen, dx[:, None], 0.0), axis=0)
     gy = jnp.sum(jnp.where(chosen, dy[:, None], 0.0), axis=0)
     return Pose(jnp.where(moved, pose.x + gx, pose.x), jnp.where(moved, pose.y + gy, pose.y), pose.a)
+
+
+def _linked(group):
+    """(M, M, *batch) bodies that a chain of joints links, each body with itself, from their joint groups."""
+    return group[:, None] == group[None, :]
 
 
 def _first_of(mask, axis: int):

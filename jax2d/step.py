@@ -16,10 +16,10 @@
     restitution             impacts propagated through touching chains, then bounces (restitution)
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
                             (joint_solver.project)
-    static walls            fast bodies swept back to where they enter a static body; bodies pushed out of
-                            static ones beyond 2 slops, alternating with the projection; the sweep back again;
-                            a centre still inside a static body taken out the way it came, with its assembly
-                            (static_walls)
+    static walls            fast bodies swept back to where they enter another body; bodies pushed out of
+                            static ones beyond 2 slops, alternating with the projection; the sweep back again,
+                            also for centres that went through a polygon; a centre still inside a polygon
+                            (static or dynamic) taken out the way it came, with its assembly (static_walls)
     store                   impulses for the next step; clamp and NaN guard (store; SimState.frozen counts
                             the bodies it froze)
 
@@ -47,7 +47,7 @@ from jax2d.collide import Manifold
 from jax2d.compact import Compact, unpack, update
 from jax2d.forces import integrate_velocities, thruster_forces
 from jax2d.math2d import Pose, Softness, Vel, pad_rows, soft
-from jax2d.narrow_phase import joint_connected, narrow_phase, pair_filter, step_reach
+from jax2d.narrow_phase import joint_labels, joint_labels_batch_last, narrow_phase, pair_filter, step_reach
 from jax2d.pairs import ContactLayout, contact_layout
 from jax2d.restitution import restitution
 from jax2d.state import Joints, SimParams, SimState, SolverConfig
@@ -155,13 +155,14 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
     M = layout.num_padded
     # The joint closure runs per scene; from there on every array is batch-last.
     with jax.named_scope("jax2d_narrow_phase"):
-        jointed = jax.vmap(lambda j: joint_connected(j, M)[layout.slot_a, layout.slot_b])(states.joints)
+        group = jax.vmap(lambda j: joint_labels(j, M))(states.joints)  # (B, M) each body's joint group
+        jointed = group[:, layout.slot_a] == group[:, layout.slot_b]  # joint_connected at the slots' pairs
         scene = _last(states)
         reach = step_reach(scene, params.dt)
         manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, reach)
     with jax.named_scope("jax2d_prepare"):
         loop, valid, _ = _prepare(layout, scene, params, _last(motor_actions), _last(thruster_actions), manifold,
-                                  _last(jointed), reach, config)
+                                  _last(jointed), _last(group), reach, config)
     pose, vel, cimp, jimp = _solve(layout, loop, config)
     with jax.named_scope("jax2d_store"):
         pose, vel, cimp, jimp, manifold, valid, dyn = _first((pose, vel, cimp, jimp, manifold, valid, loop.dyn))
@@ -179,8 +180,9 @@ def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams
     with jax.named_scope("jax2d_broad_phase"):
         found = broad_phase.find(layout, scene, states.joints, params.speculative_distance, reach)
     scene = dataclasses.replace(scene, contacts=found.contacts)
+    group = joint_labels_batch_last(scene.joints, layout.num_padded)
     loop, valid, solved = _prepare(found.cand, scene, params, _last(motor_actions), _last(thruster_actions),
-                                   found.manifold, found.jointed, reach, config)
+                                   found.manifold, found.jointed, group, reach, config)
     pose, vel, cimp, jimp = _solve(solved, loop, config)
     cimp = contact_solver.unpack_impulses(solved, cimp)  # per-scene solve order: unpacked batch-last
     pose, vel, cimp, jimp, manifold, valid, dyn = _first((pose, vel, cimp, jimp, found.manifold, valid, loop.dyn))
@@ -218,14 +220,16 @@ class LoopData(NamedTuple):
 
 
 def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_actions, thruster_actions,
-             manifold: Manifold, jointed, reach, config: SolverConfig) -> tuple[LoopData, jax.Array, ContactLayout]:
+             manifold: Manifold, jointed, group, reach,
+             config: SolverConfig) -> tuple[LoopData, jax.Array, ContactLayout]:
     """Constraint preparation from the pose at the start of the step, on batch-last arrays.
 
     Every leaf has the batch as its last axis: per body (N, *batch), per slot (S, *batch),
     params (*batch). Run batch-major under vmap, this stage gathered a few floats per row and
     then transposed every constraint array for the substeps; batch-last, each gather by a
     constant slot index is one contiguous row. jointed: (S, *batch) slots whose bodies a chain
-    of joints connects; reach: (N, *batch) step_reach, as the narrow phase used it. Returns the loop
+    of joints connects; group: (M, *batch) the bodies' joint groups (narrow_phase.joint_labels); reach: (N, *batch)
+    step_reach, as the narrow phase used it. Returns the loop
     data, (S, 2, *batch) which points are valid and the layout the solver uses (for
     broad_phase.Candidates, a broad_phase.DynamicLayout coloured here).
     """
@@ -270,7 +274,7 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
         max_push_velocity=jnp.asarray(params.max_push_velocity, jnp.float32),
         restitution_threshold=jnp.asarray(params.restitution_threshold, jnp.float32),
         linear_slop=jnp.asarray(params.linear_slop, jnp.float32),
-        walls=static_walls.shapes(b, reach, params.speculative_distance, M),
+        walls=static_walls.shapes(b, group, reach, params.speculative_distance, M),
     )
     return loop, valid, layout
 
@@ -349,15 +353,14 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
         pose, vel = rejoin(pose, vel)
     if config.static_walls:  # nothing gets into or through a static body: continuous collision, then the push-out
         with jax.named_scope("jax2d_static_walls"):
-            pose = static_walls.sweep_back(loop.walls, loop.joints, loop.pose0, pose, fixed)
+            pose = static_walls.sweep_back(loop.walls, loop.pose0, pose, fixed)
             pose = static_walls.push_out(layout, loop.cc, loop.const, cimp, colours, pose, vel, loop.pose0,
                                          loop.linear_slop, rejoin)
             # Again: the push-out's joint projections move bodies too, and one that had no contact with a wall at
             # the step's start has no point to be pushed out by (crowded scene 58, actions key 4, step 1063: a light
             # triangle welded to a motor hub went from 15 cm above the floor to 3.5 cm into it).
-            # and last, a centre still inside a static body goes out the way it came (static_walls.centre_out)
-            pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.joints, loop.pose0, pose, loop.linear_slop,
-                                                           fixed)
+            # and last, a centre still inside a polygon goes out the way it came (static_walls.centre_out)
+            pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.pose0, pose, loop.linear_slop, fixed)
     return pose, vel, cimp, jimp
 
 

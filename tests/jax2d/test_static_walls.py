@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jax2d
-from jax2d import scene, static_walls
+from jax2d import narrow_phase, scene, static_walls
 from jax2d.math2d import Pose
 
 SLOP = jax2d.SimParams().linear_slop
@@ -36,11 +36,12 @@ def _centre_out(state: jax2d.SimState, start: np.ndarray) -> np.ndarray:
     last = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)  # batch-last, a batch of one
     b = last.bodies
     N = b.active.shape[0]
-    shapes = static_walls.shapes(b, jnp.zeros((N, 1)), jnp.full((1,), 0.04), N)
+    group = narrow_phase.joint_labels_batch_last(last.joints, N)
+    shapes = static_walls.shapes(b, group, jnp.zeros((N, 1)), jnp.full((1,), 0.04), N)
     pose = Pose(b.position[:, 0], b.position[:, 1], b.angle)
     pose0 = Pose(jnp.asarray(start[:, 0])[:, None], jnp.asarray(start[:, 1])[:, None], b.angle)
     slop = jnp.full((1,), SLOP)
-    out = jax2d.jit(lambda p0, p: static_walls.centre_out(shapes, last.joints, p0, p, slop))(pose0, pose)
+    out = jax2d.jit(lambda p0, p: static_walls.centre_out(shapes, p0, p, slop))(pose0, pose)
     return np.stack([np.asarray(out.x)[:, 0], np.asarray(out.y)[:, 0]], axis=1)
 
 
@@ -69,3 +70,65 @@ def test_a_centre_outside_every_static_body_is_left_where_it_is() -> None:
     position[[i["a"], i["b"], i["d"], i["c"]]] = [(0.3, 0.2), (0.3, 0.5), (-1.5, 1.0), (-1.5, 0.5)]
     state = dataclasses.replace(state, bodies=dataclasses.replace(state.bodies, position=jnp.asarray(position)))
     np.testing.assert_array_equal(_centre_out(state, position), position)
+
+
+def _plank_scene():
+    """A free upright plank 3 cm x 2 m at (1, 0) (its left face at x = 0.985) and four balls: A and B collide
+    with it, C is welded to it, D passes beyond its top end."""
+    state = jax2d.empty_state(jax2d.Capacity(polygons=2, circles=4, joints=1, thrusters=1), gravity=(0.0, 0.0))
+    state, plank = scene.add_rectangle(state, (1.0, 0.0), 0.03, 2.0)
+    balls = {}
+    for name, at in (("a", (1.005, 0.3)), ("b", (1.2, -0.5)), ("c", (1.0, 0.8)), ("d", (1.2, 1.5))):
+        state, balls[name] = scene.add_circle(state, at, 0.05, density=0.1)
+    state, _ = scene.add_fixed_joint(state, plank, balls["c"], (1.0, 0.8))
+    return state, dict(plank=plank, **balls)
+
+
+def _last_stage(state: jax2d.SimState, start: np.ndarray) -> np.ndarray:
+    """sweep_back_then_centre_out with every body's travel inside its speculative margin (so none is "fast"):
+    only centres inside or through a polygon are moved. The new centres (N, 2)."""
+    last = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)
+    b = last.bodies
+    N = b.active.shape[0]
+    group = narrow_phase.joint_labels_batch_last(last.joints, N)
+    shapes = static_walls.shapes(b, group, jnp.full((N, 1), 10.0), jnp.full((1,), 0.04), N)
+    pose = Pose(b.position[:, 0], b.position[:, 1], b.angle)
+    pose0 = Pose(jnp.asarray(start[:, 0])[:, None], jnp.asarray(start[:, 1])[:, None], b.angle)
+    slop = jnp.full((1,), SLOP)
+    out = jax2d.jit(lambda p0, p: static_walls.sweep_back_then_centre_out(shapes, p0, p, slop))(pose0, pose)
+    return np.stack([np.asarray(out.x)[:, 0], np.asarray(out.y)[:, 0]], axis=1)
+
+
+def test_a_centre_inside_or_through_a_dynamic_plank_goes_back_the_way_it_came():
+    """A light ball crushed into a free plank ends the step with its centre inside it, or, within one step,
+    behind it: both go back out through the face they came in by. The plank itself does not move, nor does a
+    ball welded to it, nor one that passed beyond its end."""
+    state, i = _plank_scene()
+    end = np.asarray(state.bodies.position).copy()
+    start = end.copy()
+    start[i["a"]] = (0.8, 0.3)  # A came in from the left and ends 2 cm deep
+    start[i["b"]] = (0.8, -0.3)  # B went through: from 0.8 to 1.2 in x, entering at x = 0.985
+    start[i["c"]] = (0.5, 0.8)  # C is welded to the plank
+    start[i["d"]] = (0.8, 1.5)  # D passed above the plank's top end (y = 1)
+    out = _last_stage(state, start)
+    np.testing.assert_allclose(out[i["a"]], (0.985 - static_walls.CENTRE_MARGIN * SLOP, 0.3), atol=1e-5)
+    # B goes back to where its centre entered (0.985, on the face: a hair inside, centre_out takes it the
+    # margin out), on its own path.
+    t = (0.985 - 0.8) / 0.4
+    assert 0.985 - static_walls.CENTRE_MARGIN * SLOP - 1e-5 <= out[i["b"]][0] <= 0.985 + 1e-5
+    np.testing.assert_allclose(out[i["b"]][1], -0.3 - 0.2 * t, atol=1e-5)
+    np.testing.assert_array_equal(out[[i["plank"], i["c"], i["d"]]], end[[i["plank"], i["c"], i["d"]]])
+
+
+def test_a_centre_that_started_inside_a_dynamic_plank_or_passed_beside_it_is_left_alone_by_the_through_test():
+    """Through needs a start and an end outside the polygon and a segment that crosses it: a centre that
+    moved within the plank's front region, or along it, stays where it is."""
+    state, i = _plank_scene()
+    position = np.asarray(state.bodies.position).copy()
+    position[i["a"]] = (0.9, 0.3)
+    position[i["b"]] = (0.9, -0.9)
+    state = dataclasses.replace(state, bodies=dataclasses.replace(state.bodies, position=jnp.asarray(position)))
+    start = position.copy()
+    start[i["a"]] = (0.7, 0.3)  # moved toward the plank, stopped short of it
+    start[i["b"]] = (0.9, 0.9)  # moved along its left face, outside it
+    np.testing.assert_array_equal(_last_stage(state, start), position)

@@ -398,20 +398,21 @@ def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None,
     polygon = s.polygon if dynamic_too else s.polygon & ~s.dynamic[:P]
     may = (polygon[None] & s.dynamic[:, None] & modes_agree(mode[:, None], mode[None, :P])
            & (s.group[:, None] != s.group[None, :P]))
+    x0, y0 = (None, None) if pose0 is None else _centre_in_frames(pose0, P)
     inside = may
+    entered = left = missed = jnp.zeros_like(may)
     # Edge by edge (jnp.all over the vertex axis, written out): the test runs in every step.
     for k in range(V):
-        inside = inside & ((_ahead(f, k, x, y) < 0.0) | ~f.used[None, :, k])
+        used = f.used[None, :, k]
+        b = _ahead(f, k, x, y)  # > 0: outside the edge at the end
+        inside = inside & ((b < 0.0) | ~used)
+        if pose0 is not None:
+            a = _ahead(f, k, x0, y0)  # and at the start
+            entered = entered | (used & (a > 0.0) & (b <= 0.0))
+            left = left | (used & (a <= 0.0) & (b > 0.0))
+            missed = missed | (used & (a > 0.0) & (b > 0.0))  # wholly outside this edge's half-plane
     if pose0 is None:
         return inside, None
-    x0, y0 = _centre_in_frames(pose0, P)
-    entered = left = missed = jnp.zeros_like(may)
-    for k in range(V):
-        used = f.used[None, :, k]
-        a, b = _ahead(f, k, x0, y0), _ahead(f, k, x, y)  # > 0: outside the edge, at the start and at the end
-        entered = entered | (used & (a > 0.0) & (b <= 0.0))
-        left = left | (used & (a <= 0.0) & (b > 0.0))
-        missed = missed | (used & (a > 0.0) & (b > 0.0))  # wholly outside this edge's half-plane
     return inside, may & entered & left & ~missed
 
 

@@ -42,7 +42,7 @@ import numpy as np
 
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.math2d import take_rows
-from jax2d.narrow_phase import joint_connected, over_pairs_and_batch, pair_filter, step_reach
+from jax2d.narrow_phase import joint_connected, joint_labels, over_pairs_and_batch, pair_filter, step_reach
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
 from jax2d.state import SimParams
 
@@ -248,13 +248,14 @@ class Found(NamedTuple):
     cand: Candidates
     manifold: Manifold  # (L, ...) per candidate row
     jointed: jax.Array  # (L, B) rows whose bodies a chain of joints connects
+    group: jax.Array  # (M, B) each body's joint group (narrow_phase.joint_labels), for the walls' stages
     contacts: object  # state.Contacts of each row's slot last step (padding rows: no point)
 
 
 def find(layout: ContactLayout, scene, joints, speculative, reach) -> Found:
     """The step's broad and narrow phase for big scenes: each scene's candidate pairs, their manifolds, which are
-    jointed, and their slots' old contacts. scene: the batch-last state; joints: the batch-first state.joints
-    (the joint closure runs per scene); reach: (N, B) step_reach."""
+    jointed, the bodies' joint groups and their slots' old contacts. scene: the batch-last state; joints: the
+    batch-first state.joints (the joint closure runs per scene); reach: (N, B) step_reach."""
     M, S = layout.num_padded, layout.num_slots
     B = scene.bodies.active.shape[-1]
     rows, _, _ = rows_for(layout)
@@ -262,15 +263,16 @@ def find(layout: ContactLayout, scene, joints, speculative, reach) -> Found:
     may_collide = pair_filter(layout, scene.bodies, jnp.zeros((S, B), bool), M)
     cand = candidates(layout, scene.bodies, speculative, may_collide, PAD_ROWS, reach)
     manifold = collide_candidates(cand, scene.bodies, speculative, total, reach)
-    # The joint closure only where some scene has a joint: (M, M) matrix products are costly at M ~ 200.
+    # Each body's joint group, once: the rows' "jointed" here and the walls' stages later (Found.group).
+    group = jax.vmap(lambda j: joint_labels(j, M))(joints)  # (B, M)
     jointed = jax.lax.cond(
         jnp.any(joints.active),
-        lambda: jax.vmap(lambda j, a, b: joint_connected(j, M)[a, b])(joints, cand.slot_a.T, cand.slot_b.T),
+        lambda: jax.vmap(lambda g, a, b: g[a] == g[b])(group, cand.slot_a.T, cand.slot_b.T),
         lambda: jnp.zeros((B, total), bool))
     # Each scene's old contacts of its candidates (padding rows: slot S, out of range, filled with 0).
     contacts = jax.tree.map(lambda x: take_rows(x, cand.slot, fill=0), scene.contacts)
     contacts = dataclasses.replace(contacts, key=jnp.where(cand.slot[:, None] < S, contacts.key, -1))
-    return Found(cand, manifold, jnp.moveaxis(jointed, 0, -1), contacts)
+    return Found(cand, manifold, jnp.moveaxis(jointed, 0, -1), group.T, contacts)
 
 
 def to_slots(cand: Candidates, num_slots: int, x, fill):

@@ -47,7 +47,7 @@ from jax2d.collide import Manifold
 from jax2d.compact import Compact, unpack, update
 from jax2d.forces import integrate_velocities, thruster_forces
 from jax2d.math2d import Pose, Softness, Vel, pad_rows, soft
-from jax2d.narrow_phase import joint_labels, joint_labels_batch_last, narrow_phase, pair_filter, step_reach
+from jax2d.narrow_phase import joint_labels, narrow_phase, pair_filter, step_reach
 from jax2d.pairs import ContactLayout, contact_layout
 from jax2d.restitution import restitution
 from jax2d.state import Joints, SimParams, SimState, SolverConfig
@@ -180,9 +180,8 @@ def _step_chunk_broad(layout: ContactLayout, states: SimState, params: SimParams
     with jax.named_scope("jax2d_broad_phase"):
         found = broad_phase.find(layout, scene, states.joints, params.speculative_distance, reach)
     scene = dataclasses.replace(scene, contacts=found.contacts)
-    group = joint_labels_batch_last(scene.joints, layout.num_padded)
     loop, valid, solved = _prepare(found.cand, scene, params, _last(motor_actions), _last(thruster_actions),
-                                   found.manifold, found.jointed, group, reach, config)
+                                   found.manifold, found.jointed, found.group, reach, config)
     pose, vel, cimp, jimp = _solve(solved, loop, config)
     cimp = contact_solver.unpack_impulses(solved, cimp)  # per-scene solve order: unpacked batch-last
     pose, vel, cimp, jimp, manifold, valid, dyn = _first((pose, vel, cimp, jimp, found.manifold, valid, loop.dyn))

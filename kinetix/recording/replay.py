@@ -8,9 +8,13 @@ sessions step too, so a recording replays on the backend it was made on.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import itertools
 import os
+import subprocess
+import tempfile
 from collections.abc import Iterator
 
 import jax
@@ -174,23 +178,68 @@ def write_gif(recording: Recording, path, resolution: int = 256, fps: float = 15
 
 
 def write_mp4(recording: Recording, path, resolution: int = 256, fps: float = 30.0) -> int:
-    """Write the re-simulated play as an MP4 through imageio's ffmpeg plugin; RecordingError if that is missing."""
+    """Write the re-simulated play as an H.264 MP4 with the ffmpeg binary of the imageio-ffmpeg wheel; returns
+    the number of frames. RecordingError if that package is missing or ffmpeg fails; the target is then untouched.
+
+    ffmpeg is started here rather than through imageio's writer: that one starts it with a `preexec_fn`, which
+    runs Python in the forked child of this multithreaded (JAX) process, a documented deadlock hazard (JAX warns
+    about it). `start_new_session` does the same job (Ctrl+C does not reach ffmpeg) in C, before the exec.
+    """
     try:
-        import imageio.v2 as imageio
-        import imageio_ffmpeg  # noqa: F401
+        import imageio_ffmpeg
     except ImportError:
-        raise RecordingError("writing MP4 needs the imageio-ffmpeg package (pip install imageio imageio-ffmpeg); "
+        raise RecordingError("writing MP4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); "
                              "use --gif instead") from None
     every = max(1, round(1.0 / (fps * step_seconds(recording))))
     rate = 1.0 / (every * step_seconds(recording))
     tmp = f"{path}.part.mp4"
+    frames = replay_frames(recording, resolution, every)
+    _, first = next(frames)
+    height, width = first.shape[:2]
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error",
+               "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}", "-r", f"{rate:.6g}", "-i", "-",
+               "-an", "-c:v", "libx264", "-crf", "20", "-pix_fmt", "yuv420p",
+               "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2",  # yuv420p needs even sides
+               "-movflags", "+faststart", "-f", "mp4", tmp]
     count = 0
-    with imageio.get_writer(tmp, fps=rate, codec="libx264", quality=7, macro_block_size=16) as writer:
-        for _, image in replay_frames(recording, resolution, every):
-            writer.append_data(image)
-            count += 1
-    os.replace(tmp, path)
+    with tempfile.TemporaryFile() as log:
+        process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log,
+                                   start_new_session=True)
+        try:
+            broken = False
+            try:
+                for image in itertools.chain([first], (image for _, image in frames)):
+                    process.stdin.write(np.ascontiguousarray(image[..., :3], np.uint8).tobytes())
+                    count += 1
+                process.stdin.close()
+            except BrokenPipeError:  # ffmpeg stopped reading: its exit status and log say why
+                broken = True
+                with contextlib.suppress(BrokenPipeError):
+                    process.stdin.close()
+            code = process.wait()
+        except BaseException:  # Ctrl+C or a replay error: no half-written video left behind
+            process.kill()
+            process.wait()
+            _remove(tmp)
+            raise
+        if code != 0 or broken:
+            _remove(tmp)
+            log.seek(0)
+            raise RecordingError(f"ffmpeg failed writing {path} (exit status {code}): {_tail(log.read())}")
+    os.replace(tmp, path)  # never a half-written video at the target
     return count
+
+
+def _remove(path) -> None:
+    try:
+        os.remove(path)
+    except FileNotFoundError:
+        pass
+
+
+def _tail(data: bytes, limit: int = 400) -> str:
+    text = data.decode(errors="replace").strip()
+    return text[-limit:] or "no message"
 
 
 def recorded_level(recording: Recording, step: int):

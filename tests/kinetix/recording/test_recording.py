@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
 import jax
@@ -315,20 +316,45 @@ def test_cli_replay_exit_codes(recorded, tmp_path, capsys):
 
 
 def test_cli_replay_writes_an_mp4(recorded, tmp_path, capsys):
-    import imageio.v3 as iio
-
     from kinetix.cli import main
     from kinetix.recording import read_recording
 
     out = tmp_path / "u.mp4"
     assert main(["replay", str(recorded["unicycle"]), "--mp4", str(out), "--resolution", "64"]) == 0
     assert "matches" in capsys.readouterr().out
-    frames = iio.imread(out)  # decoded back through ffmpeg: a real H.264 video, not just a file
+    frames = _decode_video(out, 64)  # decoded back through ffmpeg: a real H.264 video, not just a file
     recording = read_recording(recorded["unicycle"])
     assert frames.shape[1:] == (64, 64, 3)
     assert 2 <= frames.shape[0] <= recording.num_steps + 1
     assert frames.std(axis=0).max() > 0  # the picture changes over the play
     assert not list(tmp_path.glob("*.part*"))  # written under a temporary name, then renamed
+
+
+def _decode_video(path, size: int) -> np.ndarray:
+    """(frames, size, size, 3) RGB, decoded by the ffmpeg binary (started without Python in the forked child)."""
+    import imageio_ffmpeg
+
+    out = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-i", str(path), "-f", "rawvideo",
+                          "-pix_fmt", "rgb24", "-"], capture_output=True, check=True, timeout=60).stdout
+    return np.frombuffer(out, np.uint8).reshape(-1, size, size, 3)
+
+
+def test_mp4_writing_forks_no_python_and_fails_cleanly(recorded, tmp_path):
+    """ffmpeg starts without running Python in a forked child (JAX warns of a deadlock hazard there), and a
+    failing ffmpeg gives a RecordingError that quotes it, with nothing left at the target or beside it."""
+    from kinetix.recording import read_recording
+    from kinetix.recording.replay import write_mp4
+
+    recording = read_recording(recorded["unicycle"])
+    with warnings.catch_warnings(record=True) as caught:  # JAX's fork hook warns; an error there is swallowed
+        warnings.simplefilter("always")
+        assert write_mp4(recording, tmp_path / "ok.mp4", resolution=32) >= 2
+    assert not [w for w in caught if "fork" in str(w.message)]
+    assert (tmp_path / "ok.mp4").stat().st_size > 0
+    missing = tmp_path / "no-such-folder" / "u.mp4"
+    with pytest.raises(RecordingError, match="ffmpeg failed writing .*u.mp4 .exit status [1-9]"):
+        write_mp4(recording, missing, resolution=32)
+    assert not missing.parent.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["ok.mp4"]
 
 
 def test_cli_play_records_noop(tmp_path, capsys):

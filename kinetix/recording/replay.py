@@ -196,7 +196,11 @@ def write_mp4(recording: Recording, path, resolution: int = 256, fps: float = 30
     frames = replay_frames(recording, resolution, every)
     _, first = next(frames)
     height, width = first.shape[:2]
-    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error",
+    try:
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+    except RuntimeError as error:  # the wheel without a binary for this platform, and none on the PATH
+        raise RecordingError(f"writing MP4 needs an ffmpeg binary: {error}; use --gif instead") from None
+    command = [exe, "-y", "-loglevel", "error",
                "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}", "-r", f"{rate:.6g}", "-i", "-",
                "-an", "-c:v", "libx264", "-crf", "20", "-pix_fmt", "yuv420p",
                "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2",  # yuv420p needs even sides

@@ -16,6 +16,7 @@ import os
 import subprocess
 import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -192,7 +193,7 @@ def write_mp4(recording: Recording, path, resolution: int = 256, fps: float = 30
                              "use --gif instead") from None
     every = max(1, round(1.0 / (fps * step_seconds(recording))))
     rate = 1.0 / (every * step_seconds(recording))
-    tmp = f"{path}.part.mp4"
+    tmp = Path(f"{path}.part.mp4")
     frames = replay_frames(recording, resolution, every)
     _, first = next(frames)
     height, width = first.shape[:2]
@@ -204,7 +205,7 @@ def write_mp4(recording: Recording, path, resolution: int = 256, fps: float = 30
                "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}", "-r", f"{rate:.6g}", "-i", "-",
                "-an", "-c:v", "libx264", "-crf", "20", "-pix_fmt", "yuv420p",
                "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2",  # yuv420p needs even sides
-               "-movflags", "+faststart", "-f", "mp4", tmp]
+               "-movflags", "+faststart", "-f", "mp4", str(tmp)]
     count = 0
     with tempfile.TemporaryFile() as log:
         process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log,
@@ -224,21 +225,14 @@ def write_mp4(recording: Recording, path, resolution: int = 256, fps: float = 30
         except BaseException:  # Ctrl+C or a replay error: no half-written video left behind
             process.kill()
             process.wait()
-            _remove(tmp)
+            tmp.unlink(missing_ok=True)
             raise
         if code != 0 or broken:
-            _remove(tmp)
+            tmp.unlink(missing_ok=True)
             log.seek(0)
             raise RecordingError(f"ffmpeg failed writing {path} (exit status {code}): {_tail(log.read())}")
     os.replace(tmp, path)  # never a half-written video at the target
     return count
-
-
-def _remove(path) -> None:
-    try:
-        os.remove(path)
-    except FileNotFoundError:
-        pass
 
 
 def _tail(data: bytes, limit: int = 400) -> str:

@@ -267,7 +267,7 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", metavar="DIR",
                         help="continue the run in DIR (its output directory) from its last checkpoint; settings "
                              "not given are the run's own, settings given must equal them but --steps, "
-                             "--update-epochs and --num-minibatches")
+                             "--update-epochs, --num-minibatches and --lr")
     parser.add_argument("--checkpoint-every", type=float, default=None, metavar="MINUTES",
                         help="also write the checkpoint and training state every MINUTES of wall-clock time "
                              "(default: only at the end)")

@@ -44,12 +44,13 @@ from kinetix.env import EnvParams, make_env
 from kinetix.level import LevelError
 from kinetix.level_source import RANDOM_LEVELS, level_source
 
-# Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it), and how each
-# update cuts its batch for the gradient steps (`--update-epochs`, `--num-minibatches`). Nothing carried from one
-# update to the next depends on them but an annealed learning rate's step count, which the resume re-bases so that
-# the rate stays that of the plan at the same update (ppo.rebase_schedule, train_agent).
-EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches")
-BATCH_CUT = ("update_epochs", "num_minibatches")  # TrainConfig fields of the cut, as the plans record them
+# Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it), how each
+# update cuts its batch for the gradient steps (`--update-epochs`, `--num-minibatches`) and the learning rate
+# (`--lr`, the rate an annealed schedule starts its line from). Nothing carried from one update to the next
+# depends on them but an annealed rate's step count, which the resume re-bases so that the rate stays that of the
+# plan at the same update (ppo.rebase_schedule, train_agent); Adam's moments carry over whatever the rate.
+EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches", "train.lr")
+PLANNED = ("update_epochs", "num_minibatches", "lr")  # TrainConfig fields a plan records where a resume changed them
 
 
 def setup_levels(level: str, curriculum: str | None, observation: str, action: str,
@@ -91,13 +92,14 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     save_state: also write the whole training state to OUT/resume (kinetix.agents.resume) at the end, stopped
     early or not, so the run can be resumed (`kinetix train` always does; off by default for library callers
     such as the server, whose specialists need only the checkpoint). resume: continue the run whose training
-    state is in OUT/resume instead of starting afresh; every setting but `steps`, `config.update_epochs` and
-    `config.num_minibatches` must equal the saved run's (CheckpointError naming the differences otherwise). A
-    different `steps` re-plans the run (longer or shorter, not shorter than what is done): an annealed learning
-    rate is from then on that of a `steps`-long run at the same update (it jumps where the plan changes; a
-    finished run's 0 becomes lr * (1 - done / steps)), and with a constant one the result equals a run planned that
-    long from the start. Different epochs or minibatches cut the updates from then on differently; the rate stays
-    lr * (1 - update / updates planned). checkpoint_every (minutes of
+    state is in OUT/resume instead of starting afresh; every setting but `steps`, `config.update_epochs`,
+    `config.num_minibatches` and `config.lr` must equal the saved run's (CheckpointError naming the differences
+    otherwise). A different `steps` re-plans the run (longer or shorter, not shorter than what is done): an
+    annealed learning rate is from then on that of a `steps`-long run at the same update (it jumps where the plan
+    changes; a finished run's 0 becomes lr * (1 - done / steps)), and with a constant one the result equals a run
+    planned that long from the start. Different epochs or minibatches cut the updates from then on differently;
+    the rate stays lr * (1 - update / updates planned). A different `config.lr` holds from the resume on: an
+    annealed rate is then the new lr's line at the same update. checkpoint_every (minutes of
     wall-clock time) / checkpoint_every_updates: also write everything between chunks at that cadence, so a
     killed job loses at most that much work. Either of these implies save_state. In a multi-process run only
     process 0 writes."""
@@ -163,7 +165,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     if saved is not None:
         meta, arrays, _ = saved
         history, elapsed_before = list(meta["history"]), float(meta["elapsed"])
-        plans = replan(meta, len(history), steps, {k: getattr(config, k) for k in BATCH_CUT})
+        plans = replan(meta, len(history), steps, {k: getattr(config, k) for k in PLANNED})
         if len(history) % config.updates_per_call:
             raise CheckpointError(f"the training state in {out} holds {len(history)} updates, not a whole number of "
                                   f"this run's chunks")
@@ -240,22 +242,24 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     return write(stopped=stopped, final=True)
 
 
-def replan(meta: dict, done: int, steps: int, cut: dict | None = None) -> list[dict]:
-    """The saved run's plans ({"update", "steps"}: its length from that update on; with "update_epochs" and
-    "num_minibatches" where the batch cut changed there), with `steps` and `cut` (those two TrainConfig fields)
-    from update `done` on where they differ from the plans in force. States written before plans were recorded
-    had one plan."""
+def replan(meta: dict, done: int, steps: int, settings: dict | None = None) -> list[dict]:
+    """The saved run's plans ({"update", "steps"}: its length from that update on; with every PLANNED field,
+    "update_epochs", "num_minibatches" and "lr", where one of them changed there), with `steps` and `settings`
+    (PLANNED TrainConfig fields) from update `done` on where they differ from the plans in force. States written
+    before plans were recorded had one plan."""
     plans = list(meta.get("plans") or [{"update": 0, "steps": meta["arguments"]["steps"]}])
-    saved_cut = {k: meta.get("arguments", {}).get("config", {}).get(k) for k in BATCH_CUT}
+    in_force = {k: meta.get("arguments", {}).get("config", {}).get(k) for k in PLANNED}
     for plan in plans:
-        saved_cut.update({k: plan[k] for k in BATCH_CUT if k in plan})
-    changed = {k: v for k, v in (cut or {}).items() if v != saved_cut.get(k)}
+        in_force.update({k: plan[k] for k in PLANNED if k in plan})
+    given = {k: v for k, v in (settings or {}).items() if k in PLANNED}
+    changed = {k: v for k, v in given.items() if v != in_force.get(k)}
     if plans[-1]["steps"] != steps or changed:
-        entry = {"update": done, "steps": steps, **({k: cut[k] for k in BATCH_CUT} if changed else {})}
+        recorded = {k: v for k, v in {**in_force, **given}.items() if v is not None}  # (old states: no lr)
+        entry = {"update": done, "steps": steps, **(recorded if changed else {})}
         if plans[-1]["update"] == done:  # re-planned again before any update ran: the newer plan replaces it
             previous = plans.pop()
-            if not changed and any(k in previous for k in BATCH_CUT):
-                entry.update({k: previous[k] for k in BATCH_CUT})
+            if not changed and any(k in previous for k in PLANNED):
+                entry.update({k: previous[k] for k in PLANNED if k in previous})
         plans.append(entry)
     return plans
 

@@ -1,6 +1,7 @@
 """Resumable training: a run split into jobs (a graceful stop, or a kill after periodic checkpoints, with the
 newest state file damaged) ends exactly where the uninterrupted run ends; a finished run extended with
-`--resume DIR --steps N` (constant learning rate) ends where a run planned for N steps ends; state files are written
+`--resume DIR --steps N` (constant learning rate) ends where a run planned for N steps ends; one resumed with another
+batch cut or learning rate trains on with it and records it; state files are written
 atomically and a checkpoint of another configuration is refused with a clear error."""
 
 import dataclasses
@@ -138,9 +139,9 @@ def test_annealed_run_extended_trains_on_and_shortening_below_done_is_refused(re
 
 @pytest.mark.slow
 def test_resume_with_another_configuration_is_refused(reference, tmp_path, capsys):
-    assert main(["train", "--resume", str(reference), "--lr", "0.001"]) == 2
+    assert main(["train", "--resume", str(reference), "--width", "32"]) == 2
     err = capsys.readouterr().err
-    assert "different training configuration" in err and "train.lr: 0.0003 in the checkpoint, 0.001 now" in err
+    assert "different training configuration" in err and "train.width: 16 in the checkpoint, 32 now" in err
     assert main(["train", "--resume", str(reference), "--constant-lr"]) == 2
     assert "train.anneal_lr: True in the checkpoint, False now" in capsys.readouterr().err
     with pytest.raises(CheckpointError, match="seed: 3 in the checkpoint, 4 now"):
@@ -238,6 +239,25 @@ def test_replan_records_where_the_batch_cut_changed():
         "update": 4, "steps": 300, "update_epochs": 4, "num_minibatches": 32}
 
 
+def test_replan_records_where_the_learning_rate_changed():
+    saved = {"arguments": {"steps": 100, "config": {"update_epochs": 4, "num_minibatches": 4, "lr": 3e-4}}}
+    same = {"update_epochs": 4, "num_minibatches": 4, "lr": 3e-4}
+    assert replan(saved, 4, 100, same) == [{"update": 0, "steps": 100}]
+    lower = replan(saved, 4, 100, dict(same, lr=5e-5))
+    # the whole planned setting from that update on: the rate and the cut in force with it
+    assert lower[-1] == {"update": 4, "steps": 100, "update_epochs": 4, "num_minibatches": 4, "lr": 5e-5}
+    assert replan(dict(saved, plans=lower), 8, 100, dict(same, lr=5e-5)) == lower  # resumed at that rate again
+    finer = replan(dict(saved, plans=lower), 8, 100, dict(same, lr=5e-5, num_minibatches=8))
+    assert finer[-1] == {"update": 8, "steps": 100, "update_epochs": 4, "num_minibatches": 8, "lr": 5e-5}
+
+
+def test_a_learning_rate_that_is_not_positive_and_finite_is_refused():
+    for lr in (0.0, -1e-4, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="lr must be a positive finite number"):
+            TrainConfig(lr=lr)
+    assert TrainConfig(lr=1e-5).lr == 1e-5
+
+
 def test_rebase_schedule_keeps_the_rate_of_the_plan_at_the_same_update():
     import jax.numpy as jnp
     import optax
@@ -277,7 +297,8 @@ def test_resume_with_another_batch_cut_trains_on_and_records_it(reference, tmp_p
     summary = train_agent("random-s", out, **dict(RUN, config=finer), resume=True)
     assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 9))
     assert summary["plans"] == [{"update": 0, "steps": STEPS // 2},
-                                {"update": 4, "steps": STEPS, "update_epochs": 2, "num_minibatches": 4}]
+                                {"update": 4, "steps": STEPS, "update_epochs": 2, "num_minibatches": 4,
+                                 "lr": CONFIG.lr}]
     _, arrays = final_state(out)
     counts = sorted(int(v) for k, v in arrays.items() if k.startswith(".train_state.opt_state") and k.endswith("count"))
     # Adam took 4 x 2 + 4 x 8 steps; the schedule's count was re-based to 4 updates x 8 at the resume
@@ -285,6 +306,29 @@ def test_resume_with_another_batch_cut_trains_on_and_records_it(reference, tmp_p
     with pytest.raises(CheckpointError, match="num_envs: 4 in the checkpoint, 8 now"):
         train_agent("random-s", out, **dict(RUN, config=dataclasses.replace(finer, num_envs=8)), resume=True)
 
+
+
+@pytest.mark.slow
+def test_resume_with_another_learning_rate_trains_at_it_and_records_it(reference, tmp_path):
+    out = tmp_path / "run"
+    train_agent("random-s", out, **dict(RUN, steps=STEPS // 2), save_state=True)  # 4 updates at 3e-4
+    half_meta, half_arrays, _ = resume.load_latest(out)
+    params = [k for k in half_arrays if k.startswith(".train_state.params")]
+    _, ref_arrays = final_state(reference)  # the same 4 updates, then 4 more at 3e-4
+
+    def moved(arrays):  # the largest change of a parameter over the last 4 updates
+        return max(float(np.max(np.abs(arrays[k] - half_arrays[k]))) for k in params)
+
+    assert moved(ref_arrays) > 1e-4
+    slow = dataclasses.replace(CONFIG, lr=1e-12)
+    summary = train_agent("random-s", out, **dict(RUN, config=slow), resume=True)
+    assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 9))
+    assert summary["plans"][-1] == {"update": 4, "steps": STEPS, "update_epochs": 1, "num_minibatches": 2,
+                                    "lr": 1e-12}
+    _, arrays = final_state(out)
+    assert moved(arrays) < 1e-9  # Adam's steps are about the rate in size: 8 of them at 1e-12
+    with pytest.raises(CheckpointError, match="anneal_lr: True in the checkpoint, False now"):
+        train_agent("random-s", out, **dict(RUN, config=dataclasses.replace(slow, anneal_lr=False)), resume=True)
 
 
 def test_sfl_refresh_from_the_command_line_is_part_of_the_run(monkeypatch):

@@ -58,6 +58,9 @@ def train_bc(dataset: str | Path, out: str | Path, *, epochs: int = 20, batch_si
     manifest, obs, actions = load_dataset(dataset)
     kind, action_type = manifest["observation"], manifest["action_type"]
     n = len(actions)
+    # The checkpoint's record of the run, built first: a bad setting (such as an lr that is not positive) is an
+    # error before the epochs run, not after.
+    config = TrainConfig(network=kind, total_timesteps=n * epochs, lr=lr)
     batch_size = min(batch_size, n)
     network = ActorCritic(network=kind, action=action_type)
     key = jax.random.PRNGKey(seed)
@@ -92,7 +95,6 @@ def train_bc(dataset: str | Path, out: str | Path, *, epochs: int = 20, batch_si
         log(f"epoch {epoch + 1}/{epochs}: loss {result['loss']:.4f}, action accuracy {result['accuracy']:.3f}")
     env_config = EnvConfig(size=manifest["size"], observation=kind, action=action_type,
                            frame_skip=int(manifest.get("frame_skip", 2)))
-    config = TrainConfig(network=kind, total_timesteps=n * epochs, lr=lr)
     checkpoint.save(out, params, config, env_config, {"trained_by": "kinetix train-bc", "dataset": str(dataset),
                                                       "steps": n, "epochs": epochs, **result})
     return result

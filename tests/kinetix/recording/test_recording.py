@@ -399,6 +399,10 @@ def test_train_bc_writes_a_loadable_agent(recorded, tmp_path):
     actions = [np.asarray(policy.act(jax.random.PRNGKey(i), obs)[0]) for i in range(5)]
     assert all(env.action_space.contains(a) for a in actions)
     assert sum(not a.any() for a in actions) >= 3  # it learned to do nothing, as demonstrated
+    epochs_run = []  # a bad learning rate is refused before any epoch runs, and nothing is written
+    with pytest.raises(ValueError, match="lr must be a positive finite number"):
+        train_bc(tmp_path / "demos", tmp_path / "bad", epochs=30, lr=-1e-3, log=epochs_run.append)
+    assert epochs_run == [] and not (tmp_path / "bad").exists()
 
 
 def test_recorded_level_matches_the_replayed_scene(recorded):

@@ -241,7 +241,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-steps", type=positive_int, default=None, help="rollout length per update (default: 64)")
     parser.add_argument("--updates-per-call", type=positive_int, default=None,
                         help="updates per jitted chunk between progress reports (default: 4)")
-    parser.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: 3e-4)")
+    parser.add_argument("--lr", type=float, default=None,
+                        help="Adam learning rate (default: 3e-4); with --resume, the rate from then on (annealed: "
+                             "the new rate's line at the same update)")
     parser.add_argument("--constant-lr", action="store_const", const=True, default=None,
                         help="keep the learning rate constant instead of annealing it linearly to 0 over the run "
                              "(a run extended with --resume --steps then equals one planned that long)")

@@ -312,7 +312,7 @@ def test_resume_with_another_batch_cut_trains_on_and_records_it(reference, tmp_p
 def test_resume_with_another_learning_rate_trains_at_it_and_records_it(reference, tmp_path):
     out = tmp_path / "run"
     train_agent("random-s", out, **dict(RUN, steps=STEPS // 2), save_state=True)  # 4 updates at 3e-4
-    half_meta, half_arrays, _ = resume.load_latest(out)
+    _, half_arrays, _ = resume.load_latest(out)
     params = [k for k in half_arrays if k.startswith(".train_state.params")]
     _, ref_arrays = final_state(reference)  # the same 4 updates, then 4 more at 3e-4
 

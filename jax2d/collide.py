@@ -70,9 +70,12 @@ def _f32(x):
     return jnp.asarray(x, jnp.float32)
 
 
-def _select(values, index):
-    """values[index] written as a one-hot sum: under vmap a select beats a gather on the CPU."""
-    return jnp.sum(jnp.where(jnp.arange(values.shape[-1]) == index, values, 0.0), axis=-1)
+def _select(index, *values) -> tuple[jax.Array, ...]:
+    """Each of `values` at `index`, written as one one-hot sum: under vmap a select beats a gather on the CPU,
+    and one reduction for all of them, because XLA's CPU runtime pays per call for every reduction in a program
+    (docs/engine.md, "Reductions cost per call"). Exact: one term of each sum is non-zero."""
+    stacked = jnp.stack(values)
+    return tuple(jnp.sum(jnp.where(jnp.arange(stacked.shape[-1]) == index, stacked, 0.0), axis=-1))
 
 
 class _Polygon:
@@ -158,13 +161,12 @@ def collide_polygons(pos_a, angle_a, verts_a, n_a, pos_b, angle_b, verts_b, n_b,
     flip = sep_b > sep_a + FLIP_TOLERANCE
     ref, inc = a.pick(b, flip), b.pick(a, flip)
     ref_edge = jnp.where(flip, edge_b, edge_a)
-    nx, ny = _select(ref.nx, ref_edge), _select(ref.ny, ref_edge)
-    r1 = (_select(ref.x1, ref_edge), _select(ref.y1, ref_edge))
-    r2 = (_select(ref.x2, ref_edge), _select(ref.y2, ref_edge))
+    nx, ny, r1x, r1y, r2x, r2y = _select(ref_edge, ref.nx, ref.ny, ref.x1, ref.y1, ref.x2, ref.y2)
+    r1, r2 = (r1x, r1y), (r2x, r2y)
 
     inc_edge = jnp.argmin(jnp.where(inc.face, inc.nx * nx + inc.ny * ny, _BIG))
-    p1 = (_select(inc.x1, inc_edge), _select(inc.y1, inc_edge))
-    p2 = (_select(inc.x2, inc_edge), _select(inc.y2, inc_edge))
+    p1x, p1y, p2x, p2y = _select(inc_edge, inc.x1, inc.y1, inc.x2, inc.y2)
+    p1, p2 = (p1x, p1y), (p2x, p2y)
 
     # Side planes of the reference face: the tangent t runs from r1 to r2.
     tx, ty = -ny, nx
@@ -217,11 +219,12 @@ def collide_polygon_circle(pos_p, angle_p, verts, n, pos_c, radius, speculative_
     nearest = jnp.argmin(dist2)
     near2 = jnp.min(dist2)
     dist = jnp.sqrt(jnp.maximum(near2, _TINY)) * (near2 > _TINY)
-    ox, oy = cx - _select(qx, nearest), cy - _select(qy, nearest)
+    near_x, near_y, u_near, next_vertex = _select(nearest, qx, qy, u, poly.next.astype(jnp.float32))
+    ox, oy = cx - near_x, cy - near_y
     olen2 = ox * ox + oy * oy
     ook = olen2 > _TINY
     oinv = jnp.where(ook, 1.0 / jnp.sqrt(jnp.where(ook, olen2, 1.0)), 0.0)
-    fnx, fny = _select(poly.nx, face), _select(poly.ny, face)
+    fnx, fny = _select(face, poly.nx, poly.ny)
     lnx = jnp.where(outside & ook, ox * oinv, fnx)
     lny = jnp.where(outside & ook, oy * oinv, fny)
     gap = jnp.where(outside, dist, best)
@@ -229,8 +232,7 @@ def collide_polygon_circle(pos_p, angle_p, verts, n, pos_c, radius, speculative_
     normal = jnp.stack([c * lnx - s * lny, s * lnx + c * lny])
     point = pos_c - normal * (radius + 0.5 * separation)
 
-    u_near = _select(u, nearest)
-    vertex = jnp.where(u_near >= 1.0, _select(poly.next.astype(jnp.float32), nearest).astype(jnp.int32), nearest)
+    vertex = jnp.where(u_near >= 1.0, next_vertex.astype(jnp.int32), nearest)
     in_vertex_region = outside & ((u_near <= 0.0) | (u_near >= 1.0))
     feature = jnp.where(in_vertex_region, MAX_VERTICES + vertex, jnp.where(outside, nearest, face))
     return _single_point(normal, point, separation, feature, spec)

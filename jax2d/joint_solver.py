@@ -27,7 +27,7 @@ from jax2d.math2d import (
     cross,
     one_hot_rows,
     ordered_sum,
-    pick_rows,
+    pick_rows_each,
     rotate,
     safe_inverse,
     set_at,
@@ -82,7 +82,8 @@ def prepare(joints: Joints, num_padded: int, inv_mass, inv_inertia, motor_action
     active = joints.active.astype(jnp.float32)
     sel_a = one_hot_rows(joints.a, num_padded) * active[:, None]
     sel_b = one_hot_rows(joints.b, num_padded) * active[:, None]
-    ia, ib = pick_rows(sel_a, inv_inertia), pick_rows(sel_b, inv_inertia)
+    ma, ia = pick_rows_each(sel_a, inv_mass, inv_inertia)
+    mb, ib = pick_rows_each(sel_b, inv_mass, inv_inertia)
     axial = safe_inverse(ia + ib)
     revolute = active * (~joints.fixed)
     weld = active * joints.fixed
@@ -91,7 +92,7 @@ def prepare(joints: Joints, num_padded: int, inv_mass, inv_inertia, motor_action
     return JointConstraints(
         sel_a=sel_a, sel_b=sel_b, body_a=joints.a, body_b=joints.b,
         rows=joint_block.row_mask(active, weld),
-        ma=pick_rows(sel_a, inv_mass), ia=ia, mb=pick_rows(sel_b, inv_mass), ib=ib,
+        ma=ma, ia=ia, mb=mb, ib=ib,
         axial_mass=axial,
         revolute=revolute, weld=weld, motor=motor,
         limit=revolute * joints.limit_on,
@@ -103,11 +104,12 @@ def prepare(joints: Joints, num_padded: int, inv_mass, inv_inertia, motor_action
 
 
 def frame(joints: Joints, jc: JointConstraints, pose: Pose) -> JointFrame:
-    aa, ab = pick_rows(jc.sel_a, pose.a), pick_rows(jc.sel_b, pose.a)
+    ax, ay, aa = pick_rows_each(jc.sel_a, pose.x, pose.y, pose.a)
+    bx, by, ab = pick_rows_each(jc.sel_b, pose.x, pose.y, pose.a)
     rax, ray = rotate(jnp.cos(aa), jnp.sin(aa), joints.anchor_a[:, 0], joints.anchor_a[:, 1])
     rbx, rby = rotate(jnp.cos(ab), jnp.sin(ab), joints.anchor_b[:, 0], joints.anchor_b[:, 1])
-    cx = (pick_rows(jc.sel_b, pose.x) + rbx) - (pick_rows(jc.sel_a, pose.x) + rax)
-    cy = (pick_rows(jc.sel_b, pose.y) + rby) - (pick_rows(jc.sel_a, pose.y) + ray)
+    cx = (bx + rbx) - (ax + rax)
+    cy = (by + rby) - (ay + ray)
     # Only active rows are meaningful; inactive ones have zero selections and masses.
     # A revolute joint's angle counts turns (its limits may span more than a half turn); a weld is back in place
     # after a whole turn, so its error is the nearest angle to the rest one, in [-pi, pi].
@@ -313,8 +315,8 @@ def project(jc: JointConstraints, fr: JointFrame, vel: Vel, bias_rate, plan: Sch
         return vel, None if position_fraction is None else Pose(0.0, 0.0, 0.0)
     a = joint_block.matrix(((jc.body_a, jc.ma, jc.ia, fr.rax, fr.ray), (jc.body_b, jc.mb, jc.ib, fr.rbx, fr.rby)),
                            jc.rows)
-    vax, vay, wa = pick_rows(jc.sel_a, vel.x), pick_rows(jc.sel_a, vel.y), pick_rows(jc.sel_a, vel.w)
-    vbx, vby, wb = pick_rows(jc.sel_b, vel.x), pick_rows(jc.sel_b, vel.y), pick_rows(jc.sel_b, vel.w)
+    vax, vay, wa = pick_rows_each(jc.sel_a, vel.x, vel.y, vel.w)
+    vbx, vby, wb = pick_rows_each(jc.sel_b, vel.x, vel.y, vel.w)
     error = jnp.stack([fr.cx, fr.cy, fr.angle], axis=1)  # (J, 3, *batch)
     rows = jc.rows.reshape(error.shape)
     velocity_rhs = jnp.stack([(vbx - wb * fr.rby) - (vax - wa * fr.ray), (vby + wb * fr.rbx) - (vay + wa * fr.rax),

@@ -192,8 +192,7 @@ def _swept_back(s: Shapes, pose0: Pose, pose: Pose, fast, through=None) -> Pose:
     t = jnp.min(times, axis=1)
     back = t < 1.0  # (a lerp at t = 1 is not bitwise the end pose: a body's result would depend on its batch)
     first = _first_of(times == t[:, None], axis=1)  # the body it entered first
-    x = jnp.sum(jnp.where(first, jnp.concatenate(entry_x, axis=1), 0.0), axis=1)
-    y = jnp.sum(jnp.where(first, jnp.concatenate(entry_y, axis=1), 0.0), axis=1)
+    x, y = _picked(first, 1, jnp.concatenate(entry_x, axis=1), jnp.concatenate(entry_y, axis=1))
     return Pose(jnp.where(back, x, pose.x), jnp.where(back, y, pose.y),
                 jnp.where(back, pose0.a + t * (pose.a - pose0.a), pose.a))
 
@@ -210,10 +209,12 @@ def _entry(f: _Faces, x0, y0, qx, qy, r, may):
     den = nx[None] * qx[:, :, None] + ny[None] * qy[:, :, None]
     entering, leaving = used & (den < 0.0), used & (den > 0.0)
     ratio = num / jnp.where(den == 0.0, 1.0, den)
-    t_in = jnp.max(jnp.where(entering, ratio, 0.0), axis=2)
-    t_out = jnp.min(jnp.where(leaving, ratio, 1.0), axis=2)
-    outside = jnp.any(used & (num < 0.0), axis=2)  # the core starts outside the grown polygon
-    parallel_out = jnp.any(used & (den == 0.0) & (num < 0.0), axis=2)
+    # One reduction each for the two extremes (the latest entry, minus the earliest exit) and the two tests
+    # (reductions cost per call: _picked).
+    t_in, t_out = jnp.max(jnp.stack([jnp.where(entering, ratio, 0.0), jnp.where(leaving, -ratio, -1.0)]), axis=3)
+    t_out = -t_out
+    outside = used & (num < 0.0)  # the core starts outside the grown polygon
+    outside, parallel_out = jnp.any(jnp.stack([outside, outside & (den == 0.0)]), axis=3)
     hit = outside & ~parallel_out & (t_in <= t_out) & (t_in < 1.0) & may
     return jnp.where(hit, t_in, 1.0)
 
@@ -279,9 +280,9 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
 
 def sweep_back_then_centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
     """sweep_back, then centre_out, in one conditional on whether some scene needs either: the step's last
-    stage. On the CPU the conditional costs a step from a Python loop about 27 us at l whether it is taken or not
-    (the centre test itself about 1 us; docs/engine.md, 27 Nov 2026); one conditional for both stages measured the
-    same as one each."""
+    stage. On the CPU the branch adds to every call's time, taken or not, through the reductions in it
+    (docs/engine.md, "Reductions cost per call"); one conditional for both stages measured the same as one
+    each."""
     if not s.vertices.shape[0]:  # no polygons, so no static polygon to be inside
         return sweep_back(s, pose0, pose, fixed)
     fast = _fast(s, pose0, pose)
@@ -292,7 +293,7 @@ def sweep_back_then_centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: 
         swept = _swept_back(s, pose0, pose, fast, through)
         return _moved_out(s, faces, pose0, swept, slop, fixed, CENTRE_ROUNDS)
 
-    return if_any(fixed, jnp.any(fast) | jnp.any(inside) | jnp.any(through), run, lambda: pose)
+    return if_any(fixed, jnp.any(fast) | jnp.any(inside | through), run, lambda: pose)
 
 
 def centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
@@ -329,15 +330,33 @@ def centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: bool = False) ->
 
 def _moved_out(s: Shapes, faces: _Faces, pose0: Pose, pose: Pose, slop, fixed: bool,
                rounds: tuple[bool, ...]) -> Pose:
-    """centre_out's rounds (CENTRE_ROUNDS), each in a conditional on whether some centre is inside a polygon
-    that the round counts."""
-    inside, _ = _centres_inside(s, faces, pose, dynamic_too=rounds[0])
+    """centre_out's rounds (CENTRE_ROUNDS): each runs where some centre is inside a polygon that the round
+    counts, and the first round with none ends them (fixed: every round runs).
 
-    def run():
+    One loop body for all rounds, the polygons a round counts read from the data: three copies of the round
+    made the step's program three times as many reductions, and XLA's CPU runtime pays for each reduction in a
+    program on every call, run or not (docs/engine.md, "Reductions cost per call")."""
+    dynamic_too = jnp.asarray(rounds)
+
+    def inside_of(r, pose):
+        return _centres_inside(s, faces, pose, dynamic_too=dynamic_too[r])[0]
+
+    def round_(r, pose, inside):
         moved = _move_out(s, faces, pose0, pose, inside, slop)
-        return moved if len(rounds) == 1 else _moved_out(s, faces, pose0, moved, slop, fixed, rounds[1:])
+        return moved, inside_of(jnp.minimum(r + 1, len(rounds) - 1), moved)
 
-    return if_any(fixed, inside, run, lambda: pose)
+    if fixed:
+        return jax.lax.fori_loop(0, len(rounds), lambda r, pose: round_(r, pose, inside_of(r, pose))[0], pose)
+
+    def more(carry):
+        r, _, inside = carry
+        return (r < len(rounds)) & jnp.any(inside)
+
+    def next_round(carry):
+        r, pose, inside = carry
+        return (r + 1, *round_(r, pose, inside))
+
+    return jax.lax.while_loop(more, next_round, (jnp.int32(0), pose, inside_of(0, pose)))[1]
 
 
 class _Faces(NamedTuple):
@@ -395,7 +414,7 @@ def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None,
     M = pose.x.shape[0]
     x, y = _centre_in_frames(pose, P)
     mode = jnp.pad(s.collision_mode, [(0, M - s.collision_mode.shape[0])] + [(0, 0)] * (s.collision_mode.ndim - 1))
-    polygon = s.polygon if dynamic_too else s.polygon & ~s.dynamic[:P]
+    polygon = jnp.where(dynamic_too, s.polygon, s.polygon & ~s.dynamic[:P])
     may = (polygon[None] & s.dynamic[:, None] & modes_agree(mode[:, None], mode[None, :P])
            & (s.group[:, None] != s.group[None, :P]))
     x0, y0 = (None, None) if pose0 is None else _centre_in_frames(pose0, P)
@@ -433,28 +452,36 @@ def _move_out(s: Shapes, f: _Faces, pose0: Pose, pose: Pose, inside, slop) -> Po
     came_in = jnp.max(before, axis=2, keepdims=True) >= 0.0
     choice = jnp.argmax(jnp.where(came_in, before, now), axis=2)[:, :, None]
     face = jnp.arange(V).reshape((1, 1, V) + (1,) * (pose.x.ndim - 1)) == choice
-    depth = -jnp.sum(jnp.where(face, now, 0.0), axis=2)  # (M, P, *batch) >= 0 for a centre inside
+    depth, fnx, fny = _picked(face, 2, now, nx, ny)
+    depth = -depth  # (M, P, *batch) >= 0 for a centre inside
     lift = jnp.where(hit, depth + CENTRE_MARGIN * slop, 0.0)
-    fnx, fny = jnp.sum(jnp.where(face, nx, 0.0), axis=2), jnp.sum(jnp.where(face, ny, 0.0), axis=2)
     cos, sin = jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])
     wx, wy = cos * fnx - sin * fny, sin * fnx + cos * fny  # the face's outward normal in the world
     # Per body, the polygon it is deepest in.
     pick = _first_of(lift == jnp.max(lift, axis=1, keepdims=True), axis=1) & hit
-    dx = jnp.sum(jnp.where(pick, lift * wx, 0.0), axis=1)  # (M, *batch)
-    dy = jnp.sum(jnp.where(pick, lift * wy, 0.0), axis=1)
+    dx, dy, picked = _picked(pick, 1, lift * wx, lift * wy, 1.0)  # (M, *batch); picked: 1 where pick has one
     # Per body, the largest move among the bodies of its assembly (connected), applied to the dynamic ones.
-    size = jnp.where(jnp.any(pick, axis=1), dx * dx + dy * dy, -1.0)
+    size = jnp.where(picked > 0.0, dx * dx + dy * dy, -1.0)
     lead = jnp.where(connected, size[:, None], -2.0)  # (M member, M body, *batch)
     chosen = _first_of((lead == jnp.max(lead, axis=0, keepdims=True)) & (lead >= 0.0), axis=0)
-    moved = jnp.any(chosen, axis=0) & s.dynamic
-    gx = jnp.sum(jnp.where(chosen, dx[:, None], 0.0), axis=0)
-    gy = jnp.sum(jnp.where(chosen, dy[:, None], 0.0), axis=0)
+    gx, gy, any_chosen = _picked(chosen, 0, dx[:, None], dy[:, None], 1.0)
+    moved = (any_chosen > 0.0) & s.dynamic
     return Pose(jnp.where(moved, pose.x + gx, pose.x), jnp.where(moved, pose.y + gy, pose.y), pose.a)
 
 
 def _linked(group):
     """(M, M, *batch) bodies that a chain of joints links, each body with itself, from their joint groups."""
     return group[:, None] == group[None, :]
+
+
+def _picked(mask, axis: int, *values) -> tuple[jax.Array, ...]:
+    """Each of `values` summed over `axis` where `mask` is true, as one reduction: with a mask that selects one
+    element (or none) along the axis, the value there (or 0), exactly. XLA's CPU runtime pays about half a
+    microsecond per call for every reduction in a program, run or not (docs/engine.md, "Reductions cost per
+    call"), so reductions over the same mask are stacked."""
+    shape = jnp.broadcast_shapes(mask.shape, *(jnp.shape(v) for v in values))
+    stacked = jnp.stack([jnp.broadcast_to(v, shape) for v in values])
+    return tuple(jnp.sum(jnp.where(mask[None], stacked, 0.0), axis=axis + 1))
 
 
 def _first_of(mask, axis: int):

@@ -48,6 +48,16 @@ def pick_rows(sel, x):
     return jnp.sum(sel * x[None], axis=1)
 
 
+def picked(mask, axis: int, *values) -> tuple[jax.Array, ...]:
+    """Each of `values` summed over `axis` where `mask` is true, as one reduction: with a mask that selects one
+    element (or none) along the axis, the value there (or 0), exactly. XLA's CPU runtime pays about half a
+    microsecond per call for every reduction in a program, run or not (docs/engine.md, "Reductions cost per
+    call"), so sums over the same mask are stacked."""
+    shape = jnp.broadcast_shapes(mask.shape, *(jnp.shape(v) for v in values))
+    stacked = jnp.stack([jnp.broadcast_to(v, shape) for v in values])
+    return tuple(jnp.sum(jnp.where(mask[None], stacked, 0.0), axis=axis + 1 if axis >= 0 else axis))
+
+
 def pick_rows_each(sel, *xs) -> tuple[jax.Array, ...]:
     """pick_rows(sel, x) for each of xs; the same bits either way.
 

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 
 from jax2d import contact_solver
 from jax2d.control import if_any
-from jax2d.math2d import Pose, Vel
+from jax2d.math2d import Pose, Vel, picked
 from jax2d.pairs import ContactLayout
 from jax2d.state import Bodies, modes_agree
 from jax2d.sweeps import ROW, Block, Rows, pack_rows, sweep, velocity_along
@@ -192,7 +192,7 @@ def _swept_back(s: Shapes, pose0: Pose, pose: Pose, fast, through=None) -> Pose:
     t = jnp.min(times, axis=1)
     back = t < 1.0  # (a lerp at t = 1 is not bitwise the end pose: a body's result would depend on its batch)
     first = _first_of(times == t[:, None], axis=1)  # the body it entered first
-    x, y = _picked(first, 1, jnp.concatenate(entry_x, axis=1), jnp.concatenate(entry_y, axis=1))
+    x, y = picked(first, 1, jnp.concatenate(entry_x, axis=1), jnp.concatenate(entry_y, axis=1))
     return Pose(jnp.where(back, x, pose.x), jnp.where(back, y, pose.y),
                 jnp.where(back, pose0.a + t * (pose.a - pose0.a), pose.a))
 
@@ -210,7 +210,7 @@ def _entry(f: _Faces, x0, y0, qx, qy, r, may):
     entering, leaving = used & (den < 0.0), used & (den > 0.0)
     ratio = num / jnp.where(den == 0.0, 1.0, den)
     # One reduction each for the two extremes (the latest entry, minus the earliest exit) and the two tests
-    # (reductions cost per call: _picked).
+    # (reductions cost per call: math2d.picked).
     t_in, t_out = jnp.max(jnp.stack([jnp.where(entering, ratio, 0.0), jnp.where(leaving, -ratio, -1.0)]), axis=3)
     t_out = -t_out
     outside = used & (num < 0.0)  # the core starts outside the grown polygon
@@ -452,19 +452,19 @@ def _move_out(s: Shapes, f: _Faces, pose0: Pose, pose: Pose, inside, slop) -> Po
     came_in = jnp.max(before, axis=2, keepdims=True) >= 0.0
     choice = jnp.argmax(jnp.where(came_in, before, now), axis=2)[:, :, None]
     face = jnp.arange(V).reshape((1, 1, V) + (1,) * (pose.x.ndim - 1)) == choice
-    depth, fnx, fny = _picked(face, 2, now, nx, ny)
+    depth, fnx, fny = picked(face, 2, now, nx, ny)
     depth = -depth  # (M, P, *batch) >= 0 for a centre inside
     lift = jnp.where(hit, depth + CENTRE_MARGIN * slop, 0.0)
     cos, sin = jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])
     wx, wy = cos * fnx - sin * fny, sin * fnx + cos * fny  # the face's outward normal in the world
     # Per body, the polygon it is deepest in.
     pick = _first_of(lift == jnp.max(lift, axis=1, keepdims=True), axis=1) & hit
-    dx, dy, picked = _picked(pick, 1, lift * wx, lift * wy, 1.0)  # (M, *batch); picked: 1 where pick has one
+    dx, dy, found = picked(pick, 1, lift * wx, lift * wy, 1.0)  # (M, *batch); found: 1 where pick has one
     # Per body, the largest move among the bodies of its assembly (connected), applied to the dynamic ones.
-    size = jnp.where(picked > 0.0, dx * dx + dy * dy, -1.0)
+    size = jnp.where(found > 0.0, dx * dx + dy * dy, -1.0)
     lead = jnp.where(connected, size[:, None], -2.0)  # (M member, M body, *batch)
     chosen = _first_of((lead == jnp.max(lead, axis=0, keepdims=True)) & (lead >= 0.0), axis=0)
-    gx, gy, any_chosen = _picked(chosen, 0, dx[:, None], dy[:, None], 1.0)
+    gx, gy, any_chosen = picked(chosen, 0, dx[:, None], dy[:, None], 1.0)
     moved = (any_chosen > 0.0) & s.dynamic
     return Pose(jnp.where(moved, pose.x + gx, pose.x), jnp.where(moved, pose.y + gy, pose.y), pose.a)
 
@@ -472,16 +472,6 @@ def _move_out(s: Shapes, f: _Faces, pose0: Pose, pose: Pose, inside, slop) -> Po
 def _linked(group):
     """(M, M, *batch) bodies that a chain of joints links, each body with itself, from their joint groups."""
     return group[:, None] == group[None, :]
-
-
-def _picked(mask, axis: int, *values) -> tuple[jax.Array, ...]:
-    """Each of `values` summed over `axis` where `mask` is true, as one reduction: with a mask that selects one
-    element (or none) along the axis, the value there (or 0), exactly. XLA's CPU runtime pays about half a
-    microsecond per call for every reduction in a program, run or not (docs/engine.md, "Reductions cost per
-    call"), so reductions over the same mask are stacked."""
-    shape = jnp.broadcast_shapes(mask.shape, *(jnp.shape(v) for v in values))
-    stacked = jnp.stack([jnp.broadcast_to(v, shape) for v in values])
-    return tuple(jnp.sum(jnp.where(mask[None], stacked, 0.0), axis=axis + 1))
 
 
 def _first_of(mask, axis: int):

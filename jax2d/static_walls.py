@@ -341,12 +341,9 @@ def _moved_out(s: Shapes, faces: _Faces, pose0: Pose, pose: Pose, slop, fixed: b
     def inside_of(r, pose):
         return _centres_inside(s, faces, pose, dynamic_too=dynamic_too[r])[0]
 
-    def round_(r, pose, inside):
-        moved = _move_out(s, faces, pose0, pose, inside, slop)
-        return moved, inside_of(jnp.minimum(r + 1, len(rounds) - 1), moved)
-
     if fixed:
-        return jax.lax.fori_loop(0, len(rounds), lambda r, pose: round_(r, pose, inside_of(r, pose))[0], pose)
+        return jax.lax.fori_loop(0, len(rounds), lambda r, pose: _move_out(s, faces, pose0, pose, inside_of(r, pose),
+                                                                             slop), pose)
 
     def more(carry):
         r, _, inside = carry
@@ -354,7 +351,8 @@ def _moved_out(s: Shapes, faces: _Faces, pose0: Pose, pose: Pose, slop, fixed: b
 
     def next_round(carry):
         r, pose, inside = carry
-        return (r + 1, *round_(r, pose, inside))
+        moved = _move_out(s, faces, pose0, pose, inside, slop)
+        return r + 1, moved, inside_of(jnp.minimum(r + 1, len(rounds) - 1), moved)
 
     return jax.lax.while_loop(more, next_round, (jnp.int32(0), pose, inside_of(0, pose)))[1]
 

@@ -120,7 +120,7 @@ def _select(pred: jax.Array, on_true, on_false):
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
 
 
-def _all_finite(tree) -> jax.Array:
+def all_finite(tree) -> jax.Array:
     """Whether every float in `tree` is finite, as one reduction: XLA's CPU runtime pays about half a
     microsecond per call for every reduction in a program, run or not, and one per leaf was 26 of them
     (docs/engine.md, "Reductions cost per call")."""
@@ -269,7 +269,7 @@ class KinetixEnv:
         (sim, _, won, lost, frozen), _ = jax.lax.scan(physics_step, (level.sim, false, false, false, zero), None,
                                                       length=self.config.frame_skip)
         with jax.named_scope("env_finite"):
-            finite = _all_finite(sim)
+            finite = all_finite(sim)
             next_level = _select(finite, dataclasses.replace(level, sim=sim), level)  # roll back a non-finite step
         won, lost = won & finite, lost & finite
 

@@ -19,6 +19,7 @@ import numpy as np
 
 import jax2d
 from kinetix.bindings import expand_actions
+from kinetix.env import all_finite
 from kinetix.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level, LevelError, LevelFile
 from kinetix.levels import load_level
 
@@ -40,11 +41,6 @@ class Result:
         return f"OK  {self.path}" if self.ok else f"FAIL {self.path}: {self.error}"
 
 
-def _all_finite(state) -> jax.Array:
-    leaves = [x for x in jax.tree.leaves(state) if jnp.issubdtype(x.dtype, jnp.floating)]
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
-
-
 def _run_one(level: Level, params: jax2d.SimParams, key: jax.Array, steps: int, config: jax2d.SolverConfig):
     def one_step(carry, step_key):
         state, finite = carry
@@ -53,9 +49,9 @@ def _run_one(level: Level, params: jax2d.SimParams, key: jax.Array, steps: int, 
         thruster_values = jax.random.uniform(thruster_key, (NUM_THRUSTER_BINDINGS,))
         motor, thrust = expand_actions(level, motor_values, thruster_values)
         state = jax2d.step(state, params, motor, thrust, config)
-        return (state, finite & _all_finite(state)), None
+        return (state, finite & all_finite(state)), None
 
-    (state, finite), _ = jax.lax.scan(one_step, (level.sim, _all_finite(level.sim)), jax.random.split(key, steps))
+    (state, finite), _ = jax.lax.scan(one_step, (level.sim, all_finite(level.sim)), jax.random.split(key, steps))
     return state, finite
 
 

@@ -29,12 +29,27 @@ def slot_bodies(state: SimState) -> tuple[np.ndarray, np.ndarray]:
     return layout.slot_a, layout.slot_b
 
 
+def pair_slots(num_polygons: int, num_circles: int) -> np.ndarray:
+    """Constant (N, N) int array: the contact slot of each pair of bodies, the same for (i, j) and (j, i), and S
+    (one past the last slot) on the diagonal. Every pair of bodies has exactly one slot (pairs.contact_layout)."""
+    layout = contact_layout(num_polygons, num_circles)
+    N = num_polygons + num_circles
+    S = len(layout.slot_a)
+    table = np.full((N, N), S, dtype=np.int32)
+    real = (layout.slot_a < N) & (layout.slot_b < N)
+    slots = np.arange(S)[real]
+    a, b = layout.slot_a[real], layout.slot_b[real]
+    if np.any(table[a, b] != S) or np.any(a == b):
+        raise AssertionError("contact_layout gave a pair of bodies two slots, or a body a slot with itself")
+    table[a, b] = table[b, a] = slots
+    return table
+
+
 def touching_matrix(state: SimState, tolerance: float = TOUCH_TOLERANCE) -> jax.Array:
-    """(N, N) bool, symmetric: bodies i and j touched in the last step."""
-    layout = contact_layout(state.num_polygons, state.num_circles)
-    N = state.num_bodies
-    eye = np.eye(layout.num_padded, dtype=np.float32)[:, :N]
-    sel_a, sel_b = jnp.asarray(eye[layout.slot_a]), jnp.asarray(eye[layout.slot_b])  # (S, N) constants
-    t = touching_slots(state, tolerance).astype(jnp.float32)
-    m = (sel_a * t[:, None]).T @ sel_b
-    return (m + m.T) > 0
+    """(N, N) bool, symmetric: bodies i and j touched in the last step (False on the diagonal).
+
+    One gather of the slots' flags by a constant (N, N) table of pair slots (pair_slots). As a product of
+    one-hot matrices ((S, N) by (S, N)) it cost the entity observation 0.4 ms of a step at l, batch 256, against
+    0.13 ms (docs/engine.md, "The observation's masks")."""
+    t = touching_slots(state, tolerance)
+    return jnp.concatenate([t, jnp.zeros((1,), bool)])[pair_slots(state.num_polygons, state.num_circles)]

@@ -205,6 +205,33 @@ def test_attention_masks(robot):
         assert not np.any(m[k][~active]) and not np.any(m[k][:, ~active])
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_joint_masks_on_random_joint_graphs(seed: int) -> None:
+    """Masks 1 and 2 against a plain graph search: random joints (some inactive, some repeated, some a body's
+    joint with itself) between the bodies of an l level, all active."""
+    level = empty_level("l")
+    sim = level.sim
+    N, J = sim.num_bodies, sim.num_joints
+    rng = np.random.default_rng(seed)
+    a, b = rng.integers(0, N, J), rng.integers(0, N, J)
+    on = rng.random(J) < 0.8
+    joints = dataclasses.replace(sim.joints, a=jnp.asarray(a, jnp.int32), b=jnp.asarray(b, jnp.int32),
+                                 active=jnp.asarray(on))
+    bodies = dataclasses.replace(sim.bodies, active=jnp.ones(N, bool))
+    level = dataclasses.replace(level, sim=dataclasses.replace(sim, joints=joints, bodies=bodies))
+    m = np.asarray(entity(level)["attention_mask"])
+    direct = np.eye(N, dtype=bool)
+    for i, j, o in zip(a, b, on, strict=True):
+        if o:
+            direct[i, j] = direct[j, i] = True
+    reach = direct.copy()
+    for _ in range(N):  # closure by repeated relaxation, the slow and obvious way
+        reach = reach | np.any(reach[:, :, None] & reach[None, :, :], axis=1)
+    np.testing.assert_array_equal(m[2], direct)
+    np.testing.assert_array_equal(m[1], reach)
+    assert reach.sum() > direct.sum(), "some chain longer than one joint"
+
+
 def test_finite_and_clipped_under_extreme_values(robot):
     level, ids = robot
     level = set_body(level, ids["a"], velocity=jnp.array([jnp.inf, jnp.nan]), position=jnp.array([1e6, -3.0]))

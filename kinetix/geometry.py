@@ -6,7 +6,6 @@ walls, and which bodies joints link together. Fixed shapes, no Python control fl
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
@@ -140,15 +139,19 @@ def joint_groups(level: Level) -> jax.Array:
 
 
 def groups_from_joints(a, b, active, num_bodies: int) -> jax.Array:
-    """joint_groups from the joint arrays (transitive closure by repeated squaring)."""
-    N = num_bodies
-    on = active.astype(jnp.float32)[:, None]
-    link = (jax.nn.one_hot(a, N, dtype=jnp.float32) * on).T @ (jax.nn.one_hot(b, N, dtype=jnp.float32) * on)
-    reach = (jnp.eye(N) + link + link.T) > 0
-    for _ in range(max(1, math.ceil(math.log2(max(N, 2))))):
-        r = reach.astype(jnp.float32)
-        reach = (r @ r) > 0
-    return jnp.argmax(reach, axis=1).astype(jnp.int32)
+    """joint_groups from the joint arrays (J,): each body's label is the smallest index in its group.
+
+    Union by relabelling, one joint after the other: a joint whose bodies carry labels lo < hi gives every body
+    labelled hi the label lo, so after the last joint each chain carries its smallest index. J elementwise
+    rounds over the N labels, without matrix products or scatters: in the entity observation (attention mask
+    1) at batch 256 that ran env rollouts s +11 % and l +1 % against a transitive closure by repeated squaring
+    (docs/engine.md, "The observation's masks")."""
+    labels = jnp.arange(num_bodies, dtype=jnp.int32)
+    for k in range(a.shape[0]):
+        la, lb = labels[a[k]], labels[b[k]]
+        merge = active[k] & (labels == jnp.maximum(la, lb))
+        labels = jnp.where(merge, jnp.minimum(la, lb), labels)
+    return labels
 
 
 def wall_mask(level: Level) -> np.ndarray:

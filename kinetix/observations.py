@@ -51,9 +51,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jax2d.narrow_phase import joint_connected
 from jax2d.state import SimState
 from jax2d.touching import touching_matrix
+from kinetix.geometry import groups_from_joints
 from kinetix.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level, SizeClass
 
 OBSERVATION_TYPES = ("entity", "flat", "pixels")
@@ -161,15 +161,17 @@ def attention_masks(level: Level) -> jax.Array:
     N = sim.num_bodies
     active = sim.bodies.active
     j = sim.joints
-    # Directly jointed: one comparison per (joint, body, body), reduced over the joints. Chains of joints: the
-    # engine's joint groups. As matrix products (a one-hot product, then log2 N squarings) the two cost the
-    # observation 0.55 ms of a step at l, batch 256, against 0.18 ms (docs/engine.md, "The observation's masks").
+    # Directly jointed: one comparison per (joint, body, body), reduced over the joints. Chains of joints: equal
+    # joint groups (kinetix.geometry.groups_from_joints). As matrix products (a one-hot product, then log2 N
+    # squarings) they made env rollouts that keep the observation 10 % slower at s, batch 256 (docs/engine.md,
+    # "The observation's masks").
     body = jnp.arange(N)
     link = jnp.any(j.active[:, None, None] & (j.a[:, None, None] == body[:, None]) & (j.b[:, None, None] == body),
                    axis=0)
     link = link | link.T
     eye = jnp.eye(N, dtype=bool)
-    reach = joint_connected(j, N)  # each body with itself too
+    groups = groups_from_joints(j.a, j.b, j.active, N)
+    reach = groups[:, None] == groups[None, :]  # each body with itself too
     pair = active[:, None] & active[None, :]
     touching = touching_matrix(sim)
     return jnp.stack([pair, reach & pair, (link | eye) & pair, (touching | eye) & pair])

@@ -49,7 +49,7 @@ def touching_matrix(state: SimState, tolerance: float = TOUCH_TOLERANCE) -> jax.
     """(N, N) bool, symmetric: bodies i and j touched in the last step (False on the diagonal).
 
     One gather of the slots' flags by a constant (N, N) table of pair slots (pair_slots). As a product of
-    one-hot matrices ((S, N) by (S, N)) it cost the entity observation 0.4 ms of a step at l, batch 256, against
-    0.13 ms (docs/engine.md, "The observation's masks")."""
+    one-hot (S, N) matrices it took 0.39 ms against 0.13 ms, vmapped over 256 l scenes (docs/engine.md, "The
+    observation's masks")."""
     t = touching_slots(state, tolerance)
     return jnp.concatenate([t, jnp.zeros((1,), bool)])[pair_slots(state.num_polygons, state.num_circles)]

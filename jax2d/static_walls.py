@@ -39,7 +39,7 @@ import jax.numpy as jnp
 
 from jax2d import contact_solver
 from jax2d.control import if_any
-from jax2d.math2d import Pose, Vel, picked
+from jax2d.math2d import Pose, Vel, picked, stored
 from jax2d.pairs import ContactLayout
 from jax2d.state import Bodies, modes_agree
 from jax2d.sweeps import ROW, Block, Rows, pack_rows, sweep, velocity_along
@@ -236,7 +236,7 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
     one_static = ((cc.ma == 0.0) != (cc.mb == 0.0)).astype(jnp.float32)  # (S, *batch)
     with_wall = pack_rows(layout, [one_static, one_static]) > 0.0  # (C, 2, K, *batch)
     live = with_wall & (const[:, ROW["nmass0"]:ROW["nmass0"] + 2] > 0.0)
-    token = None if plan.fixed else jnp.int32(0)  # math2d.stored
+    token = None if plan.fixed else plan.count  # math2d.stored: a traced count (a constant would be folded away)
     allowed = PUSH_TOLERANCE * slop
 
     def depth(pose):
@@ -278,19 +278,28 @@ def push_out(layout: ContactLayout, cc: contact_solver.ContactConstraints, const
     return if_any(plan.fixed, sep < -allowed, functools.partial(run, pose, vel, sep), lambda: pose)
 
 
-def sweep_back_then_centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: bool = False) -> Pose:
+def sweep_back_then_centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: bool = False,
+                               num_static: int = 0, token=None) -> Pose:
     """sweep_back, then centre_out, in one conditional on whether some scene needs either: the step's last
     stage. On the CPU the branch adds to every call's time, taken or not, through the reductions in it
     (docs/engine.md, "Reductions cost per call"); one conditional for both stages measured the same as one
-    each."""
+    each. num_static: SolverConfig.num_static, the leading polygons that are always static; their centres
+    are left out of the test for one inside (a quarter of its pairs at l, the test being most of what this
+    stage costs a step at batch 1). token: a traced non-negative integer (math2d.stored), None in a fixed
+    schedule."""
     if not s.vertices.shape[0]:  # no polygons, so no static polygon to be inside
         return sweep_back(s, pose0, pose, fixed)
     fast = _fast(s, pose0, pose)
     faces = _faces(s.vertices, s.n_vertices)
-    inside, through = _centres_inside(s, faces, pose, pose0)
+    num_static = min(num_static, s.vertices.shape[0])
+    P = faces.vx.shape[0]
+    # The polygons' rotations, computed once each: fused into the test, the cosine and sine were computed once
+    # per (body, polygon) pair (env l batch 1: +1.8 % with them stored).
+    rot = None if token is None else (stored(token, _rotation, pose.a[:P]), stored(token, _rotation, pose0.a[:P]))
+    inside, through = _centres_inside(s, faces, pose, pose0, skip=num_static, rot=rot)
 
     def run():
-        swept = _swept_back(s, pose0, pose, fast, through)
+        swept = _swept_back(s, pose0, pose, fast, _with_rows(through, num_static))
         return _moved_out(s, faces, pose0, swept, slop, fixed, CENTRE_ROUNDS)
 
     return if_any(fixed, jnp.any(fast) | jnp.any(inside | through), run, lambda: pose)
@@ -381,10 +390,16 @@ def _faces(vertices, n_vertices) -> _Faces:
     return _Faces(vx, vy, ex, ey, length, ey / length, -ex / length, _used(vertices.shape[1], n_vertices))
 
 
-def _centre_in_frames(pose: Pose, P: int):
-    """(M body, P polygon, *batch) each body's centre in each polygon's frame."""
-    cos, sin = jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])
-    rx, ry = pose.x[:, None] - pose.x[None, :P], pose.y[:, None] - pose.y[None, :P]
+def _rotation(a):
+    """(2, *a.shape) cosine and sine of angles a."""
+    return jnp.stack([jnp.cos(a), jnp.sin(a)])
+
+
+def _centre_in_frames(pose: Pose, P: int, skip: int = 0, rot=None):
+    """(M - skip body, P polygon, *batch) each body's centre (from body `skip` on) in each polygon's frame;
+    rot: the polygons' _rotation, if computed already."""
+    cos, sin = (jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])) if rot is None else (rot[0][None], rot[1][None])
+    rx, ry = pose.x[skip:, None] - pose.x[None, :P], pose.y[skip:, None] - pose.y[None, :P]
     return cos * rx + sin * ry, -sin * rx + cos * ry
 
 
@@ -393,11 +408,13 @@ def _outside_by(f: _Faces, x, y):
     return f.ex[None] * (f.vy[None] - y[:, :, None]) - f.ey[None] * (f.vx[None] - x[:, :, None])
 
 
-def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None, dynamic_too: bool = True):
-    """(M, P, *batch) dynamic centres strictly inside a polygon they collide with and are not linked to by
-    joints (for static polygons, as tests/jax2d/accuracy._inside_static counts them; dynamic_too=False: only
-    those); with pose0, also (M, P, *batch) the centres that may have gone through such a polygon in the step,
-    else None.
+def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None, dynamic_too: bool = True,
+                    skip: int = 0, rot=None):
+    """(M - skip, P, *batch) dynamic centres (of the bodies from `skip` on: those before are known static)
+    strictly inside a polygon they collide with and are not linked to by joints (for static polygons, as
+    tests/jax2d/accuracy._inside_static counts them; dynamic_too=False: only those); with pose0, also
+    (M - skip, P, *batch) the centres that may have gone through such a polygon in the step, else None
+    (_with_rows puts the skipped rows back). rot: (pose's, pose0's) polygon _rotation, if stored already.
 
     Through: the centre's segment in the polygon's frame (from where it was relative to the polygon at the
     step's start to where it is at the end) enters one edge's half-plane, leaves another's, and lies wholly
@@ -410,12 +427,13 @@ def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None,
     """
     P, V = f.vx.shape[:2]
     M = pose.x.shape[0]
-    x, y = _centre_in_frames(pose, P)
+    rot, rot0 = (None, None) if rot is None else rot
+    x, y = _centre_in_frames(pose, P, skip, rot)
     mode = jnp.pad(s.collision_mode, [(0, M - s.collision_mode.shape[0])] + [(0, 0)] * (s.collision_mode.ndim - 1))
     polygon = jnp.where(dynamic_too, s.polygon, s.polygon & ~s.dynamic[:P])
-    may = (polygon[None] & s.dynamic[:, None] & modes_agree(mode[:, None], mode[None, :P])
-           & (s.group[:, None] != s.group[None, :P]))
-    x0, y0 = (None, None) if pose0 is None else _centre_in_frames(pose0, P)
+    may = (polygon[None] & s.dynamic[skip:, None] & modes_agree(mode[skip:, None], mode[None, :P])
+           & (s.group[skip:, None] != s.group[None, :P]))
+    x0, y0 = (None, None) if pose0 is None else _centre_in_frames(pose0, P, skip, rot0)
     inside = may
     entered = left = missed = jnp.zeros_like(may)
     # Edge by edge (jnp.all over the vertex axis, written out): the test runs in every step.
@@ -431,6 +449,11 @@ def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None,
     if pose0 is None:
         return inside, None
     return inside, may & entered & left & ~missed
+
+
+def _with_rows(pairs, skip: int):
+    """(M, P, *batch) from _centres_inside's (M - skip, P, *batch): the skipped static rows, False, put back."""
+    return jnp.pad(pairs, [(skip, 0)] + [(0, 0)] * (pairs.ndim - 1)) if skip else pairs
 
 
 def _ahead(f: _Faces, k: int, x, y):

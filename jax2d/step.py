@@ -359,7 +359,8 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
             # the step's start has no point to be pushed out by (crowded scene 58, actions key 4, step 1063: a light
             # triangle welded to a motor hub went from 15 cm above the floor to 3.5 cm into it).
             # and last, a centre still inside a polygon goes out the way it came (static_walls.centre_out)
-            pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.pose0, pose, loop.linear_slop, fixed)
+            pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.pose0, pose, loop.linear_slop, fixed,
+                                                           config.num_static, None if fixed else colours.count)
     return pose, vel, cimp, jimp
 
 

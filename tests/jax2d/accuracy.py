@@ -210,12 +210,13 @@ def _inside_static(state: jax2d.SimState) -> jax.Array:
     return jnp.any(inside & static[:, None] & collide & ~linked, axis=0) & dynamic
 
 
-@functools.partial(jax2d.jit, static_argnames=("steps",))
-def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int):
+@functools.partial(jax2d.jit, static_argnames=("steps", "config"))
+def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int,
+                 config: jax2d.SolverConfig = scenes.DEFAULT_CONFIG):
     """Random actions at full power; per step and scene (steps, B): whether a centre is inside a static body, the
     bodies the NaN guard froze, and the largest linear speed."""
     batch, joints, thrusters = states.bodies.active.shape[0], states.num_joints, states.num_thrusters
-    step = jax.vmap(lambda s, m, t: scenes.STEP(s, PARAMS, m, t))
+    step = jax.vmap(lambda s, m, t: scenes.STEP(s, PARAMS, m, t, config=config))
 
     def body(s, key):
         km, kt = jax.random.split(key)
@@ -229,11 +230,14 @@ def _crowded_run(states: jax2d.SimState, key: jax.Array, steps: int):
     return inside, frozen, speed
 
 
-def crowded_walls(scene_count: int = 64, steps: int = 2000, seed: int = 0, first_scene: int = 0) -> dict:
+def crowded_walls(scene_count: int = 64, steps: int = 2000, seed: int = 0, first_scene: int = 0,
+                  num_static: int = 0) -> dict:
     """Steps (of scene_count x steps) in which some dynamic centre is inside a static body, and the scenes.
-    seed: the random actions' key; the scenes are random_scene(first_scene ...)."""
+    seed: the random actions' key; the scenes are random_scene(first_scene ...); num_static: the solver's
+    SolverConfig.num_static (the scenes' 4 walls come first, so 4 is the Kinetix environment's solver)."""
     built = [scenes.random_scene(s, CROWDED)[0] for s in range(first_scene, first_scene + scene_count)]
-    inside, frozen, _ = _crowded_run(scenes.stack(built), jax.random.key(seed), steps)
+    config = jax2d.SolverConfig(num_static=num_static)
+    inside, frozen, _ = _crowded_run(scenes.stack(built), jax.random.key(seed), steps, config)
     inside = np.asarray(inside)
     return dict(steps_inside=int(inside.sum()),
                 scenes_inside=(first_scene + np.nonzero(inside.any(axis=0))[0]).tolist(),

@@ -84,9 +84,10 @@ def _plank_scene():
     return state, dict(plank=plank, **balls)
 
 
-def _last_stage(state: jax2d.SimState, start: np.ndarray) -> np.ndarray:
+def _last_stage(state: jax2d.SimState, start: np.ndarray, num_static: int = 0, token: bool = False) -> np.ndarray:
     """sweep_back_then_centre_out with every body's travel inside its speculative margin (so none is "fast"):
-    only centres inside or through a polygon are moved. The new centres (N, 2)."""
+    only centres inside or through a polygon are moved. The new centres (N, 2). num_static, token: the
+    stage's own arguments (token True: a traced one, as the step passes)."""
     last = jax.tree.map(lambda x: jnp.asarray(x)[..., None], state)
     b = last.bodies
     N = b.active.shape[0]
@@ -95,8 +96,27 @@ def _last_stage(state: jax2d.SimState, start: np.ndarray) -> np.ndarray:
     pose = Pose(b.position[:, 0], b.position[:, 1], b.angle)
     pose0 = Pose(jnp.asarray(start[:, 0])[:, None], jnp.asarray(start[:, 1])[:, None], b.angle)
     slop = jnp.full((1,), SLOP)
-    out = jax2d.jit(lambda p0, p: static_walls.sweep_back_then_centre_out(shapes, p0, p, slop))(pose0, pose)
+    out = jax2d.jit(lambda p0, p, t: static_walls.sweep_back_then_centre_out(
+        shapes, p0, p, slop, num_static=num_static, token=t if token else None))(pose0, pose, jnp.int32(0))
     return np.stack([np.asarray(out.x)[:, 0], np.asarray(out.y)[:, 0]], axis=1)
+
+
+def test_the_last_stage_moves_the_same_centres_when_it_knows_the_walls_are_static():
+    """The environment's solver says its first polygons are static (SolverConfig.num_static) and passes a
+    traced token, so the last stage leaves those polygons' rows out of its test for a centre inside and
+    computes each polygon's rotation once: the same centres move, to the same places. Only A, the first
+    dynamic body, has its centre inside (the stage runs only where some centre is)."""
+    state, i = _corner_scene()
+    position = np.asarray(state.bodies.position).copy()
+    position[[i["d"], i["c"]]] = [(-1.5, 1.0), (-1.5, 0.5)]
+    state = dataclasses.replace(state, bodies=dataclasses.replace(state.bodies, position=jnp.asarray(position)))
+    start = position.copy()
+    start[i["a"]] = (0.25, 0.2)
+    plain = _last_stage(state, start)
+    assert (i["floor"], i["wall"], i["a"]) == (0, 1, 2)  # the two static polygons come first, then A
+    np.testing.assert_array_equal(_last_stage(state, start, num_static=2, token=True), plain)
+    moved = np.any(plain != position, axis=1)
+    assert moved[[i["a"], i["b"]]].all() and not moved[[i["floor"], i["wall"], i["d"], i["c"]]].any()
 
 
 def test_a_centre_inside_or_through_a_dynamic_plank_goes_back_the_way_it_came():

@@ -140,19 +140,34 @@ def _to_world(c, s, pos, x, y):
     return pos[0] + c * x - s * y, pos[1] + s * x + c * y
 
 
+def rotation(angle) -> jax.Array:
+    """(2, *angle.shape) the cosine and sine of `angle`, the form the *_rotated functions take."""
+    angle = _f32(angle)
+    return jnp.stack([jnp.cos(angle), jnp.sin(angle)])
+
+
 def collide_polygons(pos_a, angle_a, verts_a, n_a, pos_b, angle_b, verts_b, n_b, speculative_distance) -> Manifold:
     """Contact manifold between two convex polygons (SAT + reference-face clipping)."""
-    pos_a, angle_a, pos_b, angle_b = _f32(pos_a), _f32(angle_a), _f32(pos_b), _f32(angle_b)
+    angle_a, angle_b = _f32(angle_a), _f32(angle_b)
+    return collide_polygons_rotated(pos_a, rotation(angle_a), verts_a, n_a, pos_b, rotation(angle_b - angle_a),
+                                    verts_b, n_b, speculative_distance)
+
+
+def collide_polygons_rotated(pos_a, rot_a, verts_a, n_a, pos_b, rot_ba, verts_b, n_b,
+                             speculative_distance) -> Manifold:
+    """collide_polygons with the rotations given: rot_a = rotation(angle_a), rot_ba = rotation(angle_b - angle_a).
+    The narrow phase computes them once per pair: fused into the vertices' transforms, each cosine and sine was
+    computed once per vertex and per use."""
+    pos_a, pos_b = _f32(pos_a), _f32(pos_b)
     spec = _f32(speculative_distance)
     size = max(verts_a.shape[0], verts_b.shape[0])
     verts_a, verts_b = _pad_vertices(_f32(verts_a), size), _pad_vertices(_f32(verts_b), size)
 
     # Work in A's body frame for precision far from the origin.
-    ca, sa = jnp.cos(angle_a), jnp.sin(angle_a)
+    ca, sa = rot_a[0], rot_a[1]
     dx, dy = pos_b[0] - pos_a[0], pos_b[1] - pos_a[1]
     ox, oy = ca * dx + sa * dy, -sa * dx + ca * dy
-    rel = angle_b - angle_a
-    cr, sr = jnp.cos(rel), jnp.sin(rel)
+    cr, sr = rot_ba[0], rot_ba[1]
     a = _Polygon(verts_a[:, 0], verts_a[:, 1], n_a)
     b = _Polygon(ox + cr * verts_b[:, 0] - sr * verts_b[:, 1], oy + sr * verts_b[:, 0] + cr * verts_b[:, 1], n_b)
 
@@ -196,11 +211,16 @@ def collide_polygons(pos_a, angle_a, verts_a, n_a, pos_b, angle_b, verts_b, n_b,
 
 def collide_polygon_circle(pos_p, angle_p, verts, n, pos_c, radius, speculative_distance) -> Manifold:
     """Contact between a convex polygon (A) and a circle (B); only point 0 can be valid."""
-    pos_p, angle_p, pos_c = _f32(pos_p), _f32(angle_p), _f32(pos_c)
+    return collide_polygon_circle_rotated(pos_p, rotation(angle_p), verts, n, pos_c, radius, speculative_distance)
+
+
+def collide_polygon_circle_rotated(pos_p, rot_p, verts, n, pos_c, radius, speculative_distance) -> Manifold:
+    """collide_polygon_circle with the polygon's rotation given: rot_p = rotation(angle_p)."""
+    pos_p, pos_c = _f32(pos_p), _f32(pos_c)
     radius, spec = _f32(radius), _f32(speculative_distance)
     verts = _f32(verts)
     poly = _Polygon(verts[:, 0], verts[:, 1], n)
-    c, s = jnp.cos(angle_p), jnp.sin(angle_p)
+    c, s = rot_p[0], rot_p[1]
     dx, dy = pos_c[0] - pos_p[0], pos_c[1] - pos_p[1]
     cx, cy = c * dx + s * dy, -s * dx + c * dy
 

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
-from jax2d.math2d import pad_rows, take_rows
+from jax2d.collide import Manifold, collide_circles, collide_polygon_circle_rotated, collide_polygons_rotated, rotation
+from jax2d.math2d import pad_rows, stored, take_rows
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
 from jax2d.state import Bodies, Joints, SimState, modes_agree
 
@@ -35,7 +35,7 @@ def step_reach(state: SimState, dt) -> jax.Array:
     return dt * (speed + jnp.abs(b.angular_velocity) * extent + gain)
 
 
-def narrow_phase(layout: ContactLayout, b: Bodies, speculative, reach=None) -> Manifold:
+def narrow_phase(layout: ContactLayout, b: Bodies, speculative, reach=None, token=None) -> Manifold:
     """Manifolds for every slot, batch-last: each kind of pair is evaluated on its own constant index list.
 
     b: bodies with the batch as the last axis of every leaf; speculative: (*batch); reach: None or (N, *batch)
@@ -65,16 +65,21 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative, reach=None) -> M
     kinds = layout.by_kind
     parts = []
     i, j = layout.slot_a[kinds[POLY_POLY]], layout.slot_b[kinds[POLY_POLY]]
-    if len(i):
-        parts.append(mapped(collide_polygons, 8)(
-            pos[i], ang[i], verts[i], nv[i], pos[j], ang[j], verts[j], nv[j], margin(i, j)))
     # Polygon-circle pairs in either order share one call; circle-first pairs flip the normal.
     pc, cp = kinds[POLY_CIRCLE], kinds[CIRCLE_POLY]
     poly = np.concatenate([layout.slot_a[pc], layout.slot_b[cp]])
     circle = np.concatenate([layout.slot_b[pc], layout.slot_a[cp]])
+
+    def rotations(a, b, p):  # (pairs, 2, *batch) each, stored once (math2d.stored)
+        return tuple(jnp.moveaxis(rotation(x), 0, 1) for x in (a, b - a, p))
+
+    rot_a, rot_ba, rot_p = stored(token, rotations, ang[i], ang[j], ang[poly])
+    if len(i):
+        parts.append(mapped(collide_polygons_rotated, 8)(
+            pos[i], rot_a, verts[i], nv[i], pos[j], rot_ba, verts[j], nv[j], margin(i, j)))
     if len(poly):
-        m = mapped(collide_polygon_circle, 6)(
-            pos[poly], ang[poly], verts[poly], nv[poly], pos[circle], rad[circle - P], margin(poly, circle))
+        m = mapped(collide_polygon_circle_rotated, 6)(
+            pos[poly], rot_p, verts[poly], nv[poly], pos[circle], rad[circle - P], margin(poly, circle))
         sign = np.concatenate([np.ones(len(pc)), -np.ones(len(cp))]).astype(np.float32)
         parts.append(dataclasses.replace(m, normal=m.normal * sign.reshape((-1, 1) + (1,) * len(batch))))
     i, j = layout.slot_a[kinds[CIRCLE_CIRCLE]], layout.slot_b[kinds[CIRCLE_CIRCLE]]

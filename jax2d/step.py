@@ -159,7 +159,7 @@ def _step_chunk(states: SimState, params: SimParams, motor_actions, thruster_act
         jointed = group[:, layout.slot_a] == group[:, layout.slot_b]  # joint_connected at the slots' pairs
         scene = _last(states)
         reach = step_reach(scene, params.dt)
-        manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, reach)
+        manifold = narrow_phase(layout, scene.bodies, params.speculative_distance, reach, _token(scene, config))
     with jax.named_scope("jax2d_prepare"):
         loop, valid, _ = _prepare(layout, scene, params, _last(motor_actions), _last(thruster_actions), manifold,
                                   _last(jointed), _last(group), reach, config)
@@ -362,6 +362,14 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
             pose = static_walls.sweep_back_then_centre_out(loop.walls, loop.pose0, pose, loop.linear_slop, fixed,
                                                            config.num_static, None if fixed else colours.count)
     return pose, vel, cimp, jimp
+
+
+def _token(scene: SimState, config: SolverConfig):
+    """A traced non-negative integer for math2d.stored before any loop index exists (XLA folds a constant one,
+    and with it the conditional that stores); None with fixed control flow (jax2d/control.py)."""
+    if config.control_flow == control.FIXED:
+        return None
+    return jnp.maximum(scene.bodies.n_vertices.reshape(-1)[0], 0)
 
 
 def _last(tree):

@@ -119,7 +119,8 @@ def stored(token, fn, *args):
     stages multiplies). `lax.optimization_barrier` does not stop it: the CPU pipeline removes
     barriers before fusing. A conditional's branch is a computation of its own, so its
     results are stored. `token` is a traced non-negative integer (a loop index): the
-    condition is always true, but XLA cannot know that and keeps the conditional.
+    condition is always true, but XLA cannot know that and keeps the conditional. A constant
+    token (jnp.int32(0)) is folded away with the conditional, and the result fused again.
     token None: plainly fn(*args), for fixed control flow (jax2d/control.py), where a GPU would
     wait on the host for every conditional.
     """

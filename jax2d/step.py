@@ -367,7 +367,7 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
 def _token(scene: SimState, config: SolverConfig):
     """A traced non-negative integer for math2d.stored before any loop index exists (XLA folds a constant one,
     and with it the conditional that stores); None with fixed control flow (jax2d/control.py)."""
-    if config.control_flow == control.FIXED:
+    if config.control_flow == control.FIXED or not scene.bodies.n_vertices.size:  # (no polygons: nothing to store)
         return None
     return jnp.maximum(scene.bodies.n_vertices.reshape(-1)[0], 0)
 

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jax2d
 from jax2d import scene
 from jax2d.geometry import GeometryError
 from jax2d.pairs import contact_layout
@@ -373,3 +374,17 @@ def test_position_projection_without_the_projection_stage_is_refused():
     SolverConfig(joint_projection=None, joint_position_projection=None)  # the stage off: fine
     with pytest.raises(ValueError, match="needs joint_projection"):
         SolverConfig(joint_projection=None)
+
+
+def test_a_scene_with_no_polygon_slots_steps():
+    """Circles only (Capacity(polygons=0)): the step has no polygon to collide or store a rotation for. Two
+    overlapping balls fall and are pushed apart."""
+    state = empty_state(Capacity(polygons=0, circles=3, joints=1, thrusters=1))
+    state, _ = scene.add_circle(state, (0.0, 1.0), 0.2)
+    state, _ = scene.add_circle(state, (0.3, 1.0), 0.2)
+    step = jax2d.jit(jax2d.step)
+    for _ in range(10):
+        state = step(state, jax2d.SimParams(), jnp.zeros(1), jnp.zeros(1))
+    position = np.asarray(state.bodies.position)
+    assert np.isfinite(position).all()
+    assert (position[:2, 1] < 1.0).all() and position[1, 0] - position[0, 0] > 0.35

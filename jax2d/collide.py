@@ -46,7 +46,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from jax2d.math2d import picked
+from jax2d.math2d import picked, rotation
 
 LINEAR_SLOP = 0.005  # m; only used to size the reference-face hysteresis below
 FLIP_TOLERANCE = 0.1 * LINEAR_SLOP  # B's face must beat A's by this much to become the reference
@@ -140,12 +140,6 @@ def _to_world(c, s, pos, x, y):
     return pos[0] + c * x - s * y, pos[1] + s * x + c * y
 
 
-def rotation(angle) -> jax.Array:
-    """(2, *angle.shape) the cosine and sine of `angle`, the form the *_rotated functions take."""
-    angle = _f32(angle)
-    return jnp.stack([jnp.cos(angle), jnp.sin(angle)])
-
-
 def collide_polygons(pos_a, angle_a, verts_a, n_a, pos_b, angle_b, verts_b, n_b, speculative_distance) -> Manifold:
     """Contact manifold between two convex polygons (SAT + reference-face clipping)."""
     angle_a, angle_b = _f32(angle_a), _f32(angle_b)
@@ -155,7 +149,7 @@ def collide_polygons(pos_a, angle_a, verts_a, n_a, pos_b, angle_b, verts_b, n_b,
 
 def collide_polygons_rotated(pos_a, rot_a, verts_a, n_a, pos_b, rot_ba, verts_b, n_b,
                              speculative_distance) -> Manifold:
-    """collide_polygons with the rotations given: rot_a = rotation(angle_a), rot_ba = rotation(angle_b - angle_a).
+    """collide_polygons with the rotations given (math2d.rotation): rot_a of angle_a, rot_ba of angle_b - angle_a.
     The narrow phase computes them once per pair: fused into the vertices' transforms, each cosine and sine was
     computed once per vertex and per use."""
     pos_a, pos_b = _f32(pos_a), _f32(pos_b)
@@ -211,11 +205,12 @@ def collide_polygons_rotated(pos_a, rot_a, verts_a, n_a, pos_b, rot_ba, verts_b,
 
 def collide_polygon_circle(pos_p, angle_p, verts, n, pos_c, radius, speculative_distance) -> Manifold:
     """Contact between a convex polygon (A) and a circle (B); only point 0 can be valid."""
-    return collide_polygon_circle_rotated(pos_p, rotation(angle_p), verts, n, pos_c, radius, speculative_distance)
+    return collide_polygon_circle_rotated(pos_p, rotation(_f32(angle_p)), verts, n, pos_c, radius,
+                                          speculative_distance)
 
 
 def collide_polygon_circle_rotated(pos_p, rot_p, verts, n, pos_c, radius, speculative_distance) -> Manifold:
-    """collide_polygon_circle with the polygon's rotation given: rot_p = rotation(angle_p)."""
+    """collide_polygon_circle with the polygon's rotation given: rot_p = math2d.rotation(angle_p)."""
     pos_p, pos_c = _f32(pos_p), _f32(pos_c)
     radius, spec = _f32(radius), _f32(speculative_distance)
     verts = _f32(verts)

@@ -34,6 +34,11 @@ def cross(ax, ay, bx, by):
     return ax * by - ay * bx
 
 
+def rotation(angle) -> jax.Array:
+    """(2, *angle.shape) the cosine and sine of `angle`, stacked (to be computed once, math2d.stored)."""
+    return jnp.stack([jnp.cos(angle), jnp.sin(angle)])
+
+
 def rotate(c, s, x, y):
     """Rotate (x, y) by the angle whose cosine and sine are (c, s)."""
     return c * x - s * y, s * x + c * y

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jax2d.collide import Manifold, collide_circles, collide_polygon_circle_rotated, collide_polygons_rotated, rotation
-from jax2d.math2d import pad_rows, stored, take_rows
+from jax2d.collide import Manifold, collide_circles, collide_polygon_circle_rotated, collide_polygons_rotated
+from jax2d.math2d import pad_rows, rotation, stored, take_rows
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout
 from jax2d.state import Bodies, Joints, SimState, modes_agree
 

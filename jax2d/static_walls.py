@@ -39,7 +39,7 @@ import jax.numpy as jnp
 
 from jax2d import contact_solver
 from jax2d.control import if_any
-from jax2d.math2d import Pose, Vel, picked, stored
+from jax2d.math2d import Pose, Vel, picked, rotation, stored
 from jax2d.pairs import ContactLayout
 from jax2d.state import Bodies, modes_agree
 from jax2d.sweeps import ROW, Block, Rows, pack_rows, sweep, velocity_along
@@ -295,7 +295,7 @@ def sweep_back_then_centre_out(s: Shapes, pose0: Pose, pose: Pose, slop, fixed: 
     P = faces.vx.shape[0]
     # The polygons' rotations, computed once each: fused into the test, the cosine and sine were computed once
     # per (body, polygon) pair (env l batch 1: +1.8 % with them stored).
-    rot = None if token is None else (stored(token, _rotation, pose.a[:P]), stored(token, _rotation, pose0.a[:P]))
+    rot = None if token is None else (stored(token, rotation, pose.a[:P]), stored(token, rotation, pose0.a[:P]))
     inside, through = _centres_inside(s, faces, pose, pose0, skip=num_static, rot=rot)
 
     def run():
@@ -390,15 +390,10 @@ def _faces(vertices, n_vertices) -> _Faces:
     return _Faces(vx, vy, ex, ey, length, ey / length, -ex / length, _used(vertices.shape[1], n_vertices))
 
 
-def _rotation(a):
-    """(2, *a.shape) cosine and sine of angles a."""
-    return jnp.stack([jnp.cos(a), jnp.sin(a)])
-
-
 def _centre_in_frames(pose: Pose, P: int, skip: int = 0, rot=None):
     """(M - skip body, P polygon, *batch) each body's centre (from body `skip` on) in each polygon's frame;
-    rot: the polygons' _rotation, if computed already."""
-    cos, sin = (jnp.cos(pose.a[None, :P]), jnp.sin(pose.a[None, :P])) if rot is None else (rot[0][None], rot[1][None])
+    rot: the polygons' math2d.rotation, if computed already."""
+    cos, sin = (rotation(pose.a[:P]) if rot is None else rot)[:, None]
     rx, ry = pose.x[skip:, None] - pose.x[None, :P], pose.y[skip:, None] - pose.y[None, :P]
     return cos * rx + sin * ry, -sin * rx + cos * ry
 
@@ -414,7 +409,7 @@ def _centres_inside(s: Shapes, f: _Faces, pose: Pose, pose0: Pose | None = None,
     strictly inside a polygon they collide with and are not linked to by joints (for static polygons, as
     tests/jax2d/accuracy._inside_static counts them; dynamic_too=False: only those); with pose0, also
     (M - skip, P, *batch) the centres that may have gone through such a polygon in the step, else None
-    (_with_rows puts the skipped rows back). rot: (pose's, pose0's) polygon _rotation, if stored already.
+    (_with_rows puts the skipped rows back). rot: (pose's, pose0's) polygon math2d.rotation, if stored already.
 
     Through: the centre's segment in the polygon's frame (from where it was relative to the polygon at the
     step's start to where it is at the end) enters one edge's half-plane, leaves another's, and lies wholly

@@ -119,10 +119,12 @@ def _shows_the_level(picture: bytes) -> bool:
 def _first_picture_with_the_level(page, screencast: Screencast, timeout_ms: int = 30_000) -> int:
     """The number of the screencast's first picture that shows the level. Playwright hands the screencast its
     pictures only while the test is inside one of its calls, hence page.wait_for_timeout, not time.sleep."""
+    checked = 0  # pictures already looked at
     for _ in range(timeout_ms // 50):
-        for n, picture in enumerate(screencast.pictures):
-            if _shows_the_level(picture):
+        for n in range(checked, len(screencast.pictures)):
+            if _shows_the_level(screencast.pictures[n]):
                 return n
+        checked = len(screencast.pictures)
         page.wait_for_timeout(50)
     raise AssertionError(f"none of {len(screencast.pictures)} pictures of the gallery shows the card's thumbnail")
 

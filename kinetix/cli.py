@@ -235,6 +235,10 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sfl-refresh-every", type=positive_int, default=None, metavar="UPDATES",
                         help="sfl: score fresh levels and refill the buffer every UPDATES updates (default: 50, sized "
                              "for 32-64 envs; with 512 envs 10 refreshes as often per env step)")
+    parser.add_argument("--sfl-candidates", type=positive_int, default=None, metavar="N",
+                        help="sfl: fresh levels scored at each refresh (default: 128; the reference scores 12,288)")
+    parser.add_argument("--buffer-size", type=positive_int, default=None, metavar="N",
+                        help="sfl and plr: levels kept in the buffer (default: 64; for sfl at most --sfl-candidates)")
     parser.add_argument("--init", metavar="general|DIR", help="fine-tune this agent instead of starting from scratch")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
     parser.add_argument("--num-envs", type=positive_int, default=None, help="parallel environments (default: 32)")
@@ -287,7 +291,8 @@ def _eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--agent", required=True, metavar="DIR|noop|random|general",
                         help="a checkpoint directory, noop, random or general")
     parser.add_argument("--level", required=True, action="append", metavar="FILE|DIR",
-                        help="a level file or a directory of level files (repeatable)")
+                        help="a level file, a directory of level files, or generated-s|m|l|all: 30 held-out "
+                             "generated levels per size class that doing nothing does not solve (repeatable)")
     parser.add_argument("--attempts", type=positive_int, default=20, help="episodes per level (default: 20)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     parser.add_argument("--deterministic", action="store_true", help="take the most likely action (default: sample)")

@@ -21,6 +21,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
+import jax2d
 from kinetix.env import EnvConfig, EnvParams, ResetFn
 from kinetix.level import WALLS_SOLVER, Level, LevelError, LevelFile, LevelParams, SizeClass, size_class, solver_for
 from kinetix.levels import load_level, resize
@@ -31,6 +32,45 @@ RANDOM_LEVELS = ("random-s", "random-m", "random-l", "random-all")
 # (kinetix.padding), so one compiled program trains on all three.
 MIXED_SIZES = ("s", "m", "l")
 RANDOM_DENSE_REWARD = 0.1  # shaping on generated levels, as the public Kinetix environment
+
+
+# Held-out generated levels for evaluation (`kinetix eval --level generated-s`): HELD_OUT_COUNT levels per size class
+# that the no-op policy does not solve, from a key no training run draws (a run's levels come from its own seed's
+# keys), so the same set every time. They measure an agent on the distribution it trained on, beside the
+# hand-made sets.
+GENERATED_LEVELS = ("generated-s", "generated-m", "generated-l", "generated-all")
+HELD_OUT_SEED = 777
+HELD_OUT_COUNT = 30
+
+
+def held_out_levels(spec: str, count: int = HELD_OUT_COUNT, seed: int = HELD_OUT_SEED) -> list[tuple[str, LevelFile]]:
+    """(name, LevelFile) of the held-out generated levels `spec` names (GENERATED_LEVELS; generated-all is s, m
+    and l, each in its own size class). Level i of size s is kinetix.generate.sample_nontrivial_level with key
+    split(fold_in(PRNGKey(seed), ord("s")), count)[i]; where 8 candidates are all solved by doing nothing the
+    last is kept. Settings: LevelParams() (shaping RANDOM_DENSE_REWARD, as in training)."""
+    from kinetix.generate import sample_nontrivial_level
+
+    if spec not in GENERATED_LEVELS:
+        raise LevelError(f"{spec!r} is not one of {', '.join(GENERATED_LEVELS)}")
+    sizes = MIXED_SIZES if spec == "generated-all" else (spec.removeprefix("generated-"),)
+    params = LevelParams(dense_reward_scale=RANDOM_DENSE_REWARD)
+    named = []
+    for name in sizes:
+        size = size_class(name)
+        keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), ord(name)), count)
+        levels, _ = jax2d.jit(jax.vmap(lambda k, size=size: sample_nontrivial_level(k, size)))(keys)
+        for i in range(count):
+            level, label = jax.tree.map(lambda x, i=i: x[i], levels), f"generated-{name}/{i:02d}"
+            named.append((label, LevelFile(level, params, size, name=label)))
+    return named
+
+
+def eval_levels(spec: str | Path) -> list[tuple[str, LevelFile]]:
+    """(name, LevelFile) for every level an evaluation's `--level` names: a level file, a directory of them, or
+    held-out generated levels (GENERATED_LEVELS)."""
+    if str(spec) in GENERATED_LEVELS:
+        return held_out_levels(str(spec))
+    return [(str(p), load_level(p)) for p in level_paths(spec)]
 
 
 def level_paths(spec: str | Path) -> list[Path]:

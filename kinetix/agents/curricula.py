@@ -49,6 +49,14 @@ class CurriculumConfig:
     # plr
     temperature: float = 0.3
 
+    def __post_init__(self):
+        for name in ("buffer_size", "candidates", "attempts", "refresh_every"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value > 0):
+                raise ValueError(f"curriculum {name.replace('_', ' ')} must be a positive integer, got {value!r}")
+        if not 0.0 <= self.replay_prob <= 1.0:
+            raise ValueError(f"curriculum replay probability must be in [0, 1], got {self.replay_prob!r}")
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -128,6 +136,9 @@ def _empty_buffer(generator, size: int) -> dict:
 
 def sfl(generator: Callable[[jax.Array], Level], solve_rate_fn: Callable, config: CurriculumConfig) -> Curriculum:
     """`solve_rate_fn(key, net_params, levels (M, ...), attempts) -> (M,)` solve rates of the current policy."""
+    if config.buffer_size > config.candidates:
+        raise ValueError(f"sfl keeps the best {config.buffer_size} of {config.candidates} scored levels: the buffer "
+                         f"cannot be larger than the candidates (raise --sfl-candidates or lower --buffer-size)")
 
     def init(key):
         return _empty_buffer(generator, config.buffer_size)

@@ -89,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run", type=Path, help="the run's directory (kinetix train --out)")
     parser.add_argument("--checkpoint", type=Path, help="the checkpoint evaluated (default: RUN/checkpoint)")
     parser.add_argument("--results", type=Path, help="its `kinetix eval --json` output, instead of evaluating here")
-    parser.add_argument("--level", default="levels", help="the level set (default: levels)")
+    parser.add_argument("--level", default="levels",
+                        help="the level set: a directory, a file or generated-s|m|l|all (default: levels)")
     parser.add_argument("--attempts", type=positive_int, default=100, help="episodes per level (default: 100)")
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed (default: 0)")
     args = parser.parse_args(argv)
@@ -100,10 +101,9 @@ def main(argv: list[str] | None = None) -> int:
             results = read_results(args.results)
         else:
             from kinetix.agents.evaluate import evaluate
-            from kinetix.level_source import level_paths
-            from kinetix.levels import load_level
+            from kinetix.level_source import eval_levels
 
-            levels = [(str(p), load_level(p)) for p in level_paths(args.level)]
+            levels = eval_levels(args.level)
             results = evaluate(str(checkpoint), levels, attempts=args.attempts, seed=args.seed)
     except (CurveError, LevelError, CheckpointError) as error:
         print(f"eval_curve: {error}", file=sys.stderr)

@@ -20,8 +20,7 @@ from kinetix.agents.policy import load_policy, required_observation
 from kinetix.agents.rollout import run_episodes
 from kinetix.env import EnvConfig, EnvParams, make_env
 from kinetix.level import LevelError, LevelFile
-from kinetix.level_source import level_paths
-from kinetix.levels import load_level
+from kinetix.level_source import eval_levels
 from kinetix.reset_fns import stack_levels
 
 ATTEMPTS = 20
@@ -59,8 +58,7 @@ def evaluate(agent: str, levels: list[tuple[str, LevelFile]], attempts: int = AT
 
 def run(args: argparse.Namespace) -> int:
     try:
-        paths = [p for spec in args.level for p in level_paths(spec)]
-        levels = [(str(p), load_level(p)) for p in paths]
+        levels = [named for spec in args.level for named in eval_levels(spec)]
         results = evaluate(args.agent, levels, attempts=args.attempts, seed=args.seed,
                            deterministic=args.deterministic)
     except (LevelError, CheckpointError) as error:

@@ -351,8 +351,10 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 "observation": pick("observation", config.network), "action": stored.get("action", "multi_discrete"),
                 "dense_reward": pick("dense_reward"), "resume": bool(args.resume)}
     curriculum_config = dict(stored.get("curriculum_config") or {})
-    if getattr(args, "sfl_refresh_every", None) is not None:
-        curriculum_config["refresh_every"] = args.sfl_refresh_every
+    for option, field in (("sfl_refresh_every", "refresh_every"), ("sfl_candidates", "candidates"),
+                          ("buffer_size", "buffer_size")):
+        if getattr(args, option, None) is not None:
+            curriculum_config[field] = getattr(args, option)
     if curriculum_config:
         settings["curriculum_config"] = curricula.CurriculumConfig(**curriculum_config)
     return settings

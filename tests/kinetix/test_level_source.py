@@ -48,3 +48,25 @@ def test_bad_specs_are_refused_with_a_reason(tmp_path):
     _copy(LEVELS / "thrust_hop.json", tmp_path / "b.json", frame_skip=3)
     with pytest.raises(LevelError, match="different frame skips"):
         level_source(tmp_path)
+
+
+def test_held_out_generated_levels_are_the_same_each_time():
+    import jax
+
+    from kinetix.env import EnvParams
+    from kinetix.level_source import eval_levels, held_out_levels
+
+    first = held_out_levels("generated-s", count=3)
+    again = held_out_levels("generated-s", count=3)
+    assert [name for name, _ in first] == ["generated-s/00", "generated-s/01", "generated-s/02"]
+    assert {lf.size.name for _, lf in first} == {"s"}
+    assert first[0][1].params.dense_reward_scale == RANDOM_DENSE_REWARD
+    for (_, a), (_, b) in zip(first, again, strict=True):
+        jax.tree.map(np.testing.assert_array_equal, a.level, b.level)
+    assert not np.array_equal(np.asarray(first[0][1].level.sim.bodies.position),
+                              np.asarray(first[1][1].level.sim.bodies.position))
+    assert EnvParams.from_level_params(first[0][1].params).dense_reward_scale == RANDOM_DENSE_REWARD
+    with pytest.raises(LevelError, match="is not one of generated-s"):
+        held_out_levels("generated-xl")
+    with pytest.raises(LevelError, match="does not exist"):
+        eval_levels("generated-xl")  # not a held-out set, so a path, and there is none

@@ -4,6 +4,7 @@ admits fresh levels that beat the buffer and keeps every environment's level id 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jax2d
 from kinetix.agents import curricula
@@ -50,6 +51,16 @@ def test_sfl_keeps_the_most_learnable_levels():
     assert np.all(np.asarray(env_ids) == -2)  # a refresh detaches running episodes from the buffer
     levels, ids = sample(jax.random.key(2), state, 64)
     assert set(np.asarray(ids).tolist()) <= {-1, 0, 1} and (np.asarray(ids) >= 0).any()
+
+
+def test_curriculum_sizes_are_checked_with_a_clear_message():
+    with pytest.raises(ValueError, match="buffer size must be a positive integer, got 0"):
+        CurriculumConfig(buffer_size=0)
+    with pytest.raises(ValueError, match="replay probability must be in"):
+        CurriculumConfig(replay_prob=1.5)
+    with pytest.raises(ValueError, match="best 8 of 4 scored levels"):
+        curricula.sfl(generator, lambda *args: None, CurriculumConfig(buffer_size=8, candidates=4))
+    curricula.plr(generator, CurriculumConfig(buffer_size=256))  # plr scores no candidates: any buffer size
 
 
 def test_plr_scores_admits_and_remaps():

@@ -331,7 +331,7 @@ def test_resume_with_another_learning_rate_trains_at_it_and_records_it(reference
         train_agent("random-s", out, **dict(RUN, config=dataclasses.replace(slow, anneal_lr=False)), resume=True)
 
 
-def test_sfl_refresh_from_the_command_line_is_part_of_the_run(monkeypatch):
+def test_sfl_settings_from_the_command_line_are_part_of_the_run(monkeypatch):
     """`--sfl-refresh-every N` sets the run's curriculum config; a resumed job (which names nothing but the
     directory) keeps the saved value, and one given again is kept for train_agent to compare."""
     import argparse
@@ -351,6 +351,10 @@ def test_sfl_refresh_from_the_command_line_is_part_of_the_run(monkeypatch):
     assert resumed["curriculum_config"].refresh_every == 2 and resumed["curriculum"] == "sfl"
     changed = settings_from_args(parser.parse_args(["--resume", "somewhere", "--sfl-refresh-every", "3"]))
     assert changed["curriculum_config"].refresh_every == 3  # train_agent refuses it: it differs from the run
+    sized = settings_from_args(parser.parse_args(["--level", "random-all", "--curriculum", "sfl",
+                                                  "--sfl-candidates", "1024", "--buffer-size", "128"]))
+    assert (sized["curriculum_config"].candidates, sized["curriculum_config"].buffer_size) == (1024, 128)
+    assert sized["curriculum_config"].refresh_every == CurriculumConfig().refresh_every
 
 
 @pytest.mark.slow

@@ -31,6 +31,16 @@ def _serve(tmp_path, *options: str, until: str) -> tuple[subprocess.Popen, list[
     return process, lines
 
 
+def _rest_after_ctrl_c(process: subprocess.Popen, timeout: float) -> str:
+    """The process's remaining output once it exits; if it does not within `timeout` s, it is killed and the test
+    fails with that output (a hung shutdown prints every thread's stack after 20 s, server/app.py)."""
+    try:
+        return process.communicate(timeout=timeout)[0]
+    except subprocess.TimeoutExpired:
+        process.kill()
+        pytest.fail(f"kinetix serve did not exit within {timeout} s of Ctrl+C; it printed:\n{process.communicate()[0]}")
+
+
 def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
     process, lines = _serve(tmp_path, "--warm", "none", "--allowed-hosts", "kinetix.test", until="Open ")
     try:
@@ -48,7 +58,7 @@ def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):
                                    timeout=10)
         assert refused.value.code == 400
         process.send_signal(signal.SIGINT)
-        rest = process.communicate(timeout=30)[0]
+        rest = _rest_after_ctrl_c(process, 30)
         assert process.returncode == 0, rest
         assert "Shutting down" in rest
     finally:
@@ -129,7 +139,7 @@ def test_ctrl_c_during_the_warm_up_exits_at_once_and_jax_tries_no_missing_platfo
     process, lines = _serve(tmp_path, until="Compiling the physics")
     try:
         process.send_signal(signal.SIGINT)  # the warm-up has just begun: its first task is under way
-        rest = process.communicate(timeout=60)[0]
+        rest = _rest_after_ctrl_c(process, 60)
         output = "".join(lines) + rest
         assert process.returncode == 0, output
         assert "Shutting down" in rest and "the compile under way is abandoned" in rest, output

@@ -332,8 +332,9 @@ def test_resume_with_another_learning_rate_trains_at_it_and_records_it(reference
 
 
 def test_sfl_settings_from_the_command_line_are_part_of_the_run(monkeypatch):
-    """`--sfl-refresh-every N` sets the run's curriculum config; a resumed job (which names nothing but the
-    directory) keeps the saved value, and one given again is kept for train_agent to compare."""
+    """`--sfl-refresh-every N` (like `--sfl-candidates` and `--buffer-size`) sets the run's curriculum config; a
+    resumed job (which names nothing but the directory) keeps the saved value, and one given again is kept for
+    train_agent to compare."""
     import argparse
 
     from kinetix.agents.train import settings_from_args

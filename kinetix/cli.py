@@ -262,6 +262,11 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="observation type (default: the network's)")
     parser.add_argument("--dense-reward", type=float, default=None,
                         help="shaping scale (default: the level's; 0.1 on random levels)")
+    parser.add_argument("--size-groups", action=argparse.BooleanOptionalAction, default=None,
+                        help="random-all: step each size class's levels in its own third of the envs at its own size "
+                             "(default; 2x faster physics than padding every level to l) or, with --no-size-groups, "
+                             "all padded to l in one batch (runs started before 29 Nov 2026; a resumed run keeps "
+                             "its own)")
     parser.add_argument("--no-shard", action="store_true", help="do not split the env batch over local devices")
     parser.add_argument("--devices", type=positive_int, default=None,
                         help="CPU devices to split the env batch over (default: one per core in a single-process "
@@ -346,8 +351,9 @@ COMMANDS: list[Command] = [
 
 def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print results as JSON lines")
-    parser.add_argument("--sizes", type=comma_list(str, allowed=set(SIZES)), default=["s", "m", "l"],
-                        help="size classes to measure, comma-separated (default: s,m,l)")
+    parser.add_argument("--sizes", type=comma_list(str, allowed={*SIZES, "all", "all-padded"}), default=["s", "m", "l"],
+                        help="size classes to measure, comma-separated (default: s,m,l); all: random-all in size "
+                             "groups, as kinetix train runs it; all-padded: every level padded to l")
     parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
     parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")
     parser.add_argument("--updates-per-call", type=positive_int, default=4, help="updates per chunk (default: 4)")

@@ -1,8 +1,9 @@
 """`kinetix bench train`: PPO training throughput (env steps per second, updates included) per size class.
 
-Trains on random levels of each size (dr), the env batch split over the CPU devices (`--devices`, default one per
-core, as `kinetix bench env` does), and times the jitted chunks after the first one, so compiling
-is reported separately. Prints numbers only; nothing here passes or fails.
+Trains on random levels of each size (dr; `all`: random-all in size groups as `kinetix train` runs it,
+`all-padded`: every level padded to l, as runs before size groups), the env batch split over the CPU devices
+(`--devices`, default one per core, as `kinetix bench env` does), and times the jitted chunks after the first one,
+so compiling is reported separately. Prints numbers only; nothing here passes or fails.
 """
 
 from __future__ import annotations
@@ -26,18 +27,28 @@ from kinetix.level_source import RANDOM_DENSE_REWARD
 def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int, timed: bool = True) -> dict:
     """PPO env steps per second with updates: the first chunk (compiling) apart, then `chunks` timed ones.
     timed=False stops after the first chunk (it only compiles, e.g. into the persistent cache)."""
+    from kinetix.agents.train import random_all_groups, size_groups_for
     from kinetix.generate import sample_level
+    from kinetix.level_source import level_source
 
-    sc = size_class(size)
-    generator = lambda key: sample_level(key, sc)
-    env = make_env(EnvConfig(sc, solver=WALLS_SOLVER), generator)  # as `kinetix train` on random levels
     config = TrainConfig(num_envs=num_envs, num_steps=num_steps, updates_per_call=updates_per_call,
                          total_timesteps=num_envs * num_steps * updates_per_call * (chunks + 1))
-    shard = None
-    if batch_devices(num_envs) > 1:  # as `kinetix train` and `kinetix bench env`: the env batch over every device
-        shard = batch_sharder(local_mesh(), num_envs)
+    devices = batch_devices(num_envs)  # as `kinetix train` and `kinetix bench env`: the env batch over every device
+    sharder = lambda n: batch_sharder(local_mesh(), n) if devices > 1 else None
+    groups = None
+    if size in ("all", "all-padded"):  # random-all as `kinetix train` steps it: in size groups, or padded to l
+        source = level_source("random-all")
+        generator = source.generator
+        env = make_env(source.env_config("entity", "multi_discrete"), generator)
+        if size == "all":
+            groups = random_all_groups(size_groups_for(config, devices), None, "entity", "multi_discrete",
+                                       curricula.CurriculumConfig(), None, lambda env: None, sharder)
+    else:
+        sc = size_class(size)
+        generator = lambda key: sample_level(key, sc)
+        env = make_env(EnvConfig(sc, solver=WALLS_SOLVER), generator)  # as `kinetix train` on random levels
     trainer = make_train(config, env, EnvParams(dense_reward_scale=RANDOM_DENSE_REWARD),
-                         curricula.domain_randomisation(generator), shard=shard)
+                         curricula.domain_randomisation(generator), shard=sharder(num_envs), groups=groups)
     start = time.perf_counter()
     runner = jax2d.jit(trainer.init)(jax.random.key(0))
     runner, metrics = trainer.run(runner)
@@ -53,7 +64,7 @@ def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_c
     steps = chunks * updates_per_call * config.batch_size
     return {"size": size, "num_envs": num_envs, "num_steps": num_steps, "env_steps": steps,
             "seconds": round(elapsed, 2), "steps_per_second": round(steps / elapsed, 1),
-            "first_chunk_seconds": round(first, 2), "devices": 1 if shard is None else jax.device_count()}
+            "first_chunk_seconds": round(first, 2), "devices": devices}
 
 
 def env_speed(size: str, num_envs: int) -> dict:
@@ -68,7 +79,9 @@ def env_speed(size: str, num_envs: int) -> dict:
 def run(args: argparse.Namespace) -> int:
     for size in args.sizes:
         result = measure(size, args.num_envs, args.num_steps, args.chunks, args.updates_per_call)
-        if args.env:
+        if args.env and size.startswith("all"):
+            print(f"size {size}: no reference level to compare with (--env measures s, m and l)", flush=True)
+        elif args.env:
             env = env_speed(size, args.num_envs)
             result.update(env_level=env["level"], env_steps_per_second=round(env["steps_per_s"], 1),
                           share_of_env=round(result["steps_per_second"] / env["steps_per_s"], 3))
@@ -78,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         line = (f"size {size}: {result['steps_per_second']:9.1f} env steps/s with updates ({result['num_envs']} envs "
                 f"on {result['devices']} device(s), {result['env_steps']} steps in {result['seconds']} s; first chunk "
                 f"incl. compile {result['first_chunk_seconds']} s)")
-        if args.env:
+        if "share_of_env" in result:
             line += (f"; env alone {result['env_steps_per_second']:.0f} steps/s ({result['env_level']}): training "
                      f"keeps {100 * result['share_of_env']:.1f}%")
         print(line, flush=True)

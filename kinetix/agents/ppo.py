@@ -180,20 +180,47 @@ def shuffle_minibatches(tree: Any, key: jax.Array, config: TrainConfig) -> Any:
 
 
 def ppo_update(network: nn.Module, action_type: str, config: TrainConfig, train_state: TrainState,
-               batch: Transition, advantages: jax.Array, targets: jax.Array, key: jax.Array):
+               batch: Transition, advantages: jax.Array, targets: jax.Array, key: jax.Array,
+               group_configs: tuple[TrainConfig, ...] | None = None):
     """`update_epochs` epochs of minibatch SGD on one rollout (leading axes (T, E)). Returns (state, mean losses).
+
+    group_configs: with env groups (make_train's `groups`), `batch`, `advantages` and `targets` are tuples, one per
+    group (leading axes (T, E_g)), and group_configs their TrainConfigs (num_envs E_g). Each group's samples are
+    shuffled into `num_minibatches` minibatches on their own; minibatch i is every group's part i, its advantages
+    normalised over all of them, its loss the sample-weighted mean of the groups' (a group's observations have its
+    own shapes, so the network runs over each part alone).
 
     Pure: under a mesh the batch may be sharded over its env axis and XLA inserts the gradient all-reduce."""
     loss = lambda p, mb: ppo_loss(network, action_type, config, p, *mb)
 
-    def epoch(state, epoch_key):
-        def minibatch(state, mb):
-            mb_batch, mb_advantages, mb_targets = mb
-            aux, grads = parts.mean_grad(loss, state.params,
-                                         (mb_batch, normalise_advantages(mb_advantages), mb_targets))
-            return state.apply_gradients(grads=grads), aux
+    if group_configs is None:
+        def epoch(state, epoch_key):
+            def minibatch(state, mb):
+                mb_batch, mb_advantages, mb_targets = mb
+                aux, grads = parts.mean_grad(loss, state.params,
+                                             (mb_batch, normalise_advantages(mb_advantages), mb_targets))
+                return state.apply_gradients(grads=grads), aux
 
-        return jax.lax.scan(minibatch, state, shuffle_minibatches((batch, advantages, targets), epoch_key, config))
+            return jax.lax.scan(minibatch, state, shuffle_minibatches((batch, advantages, targets), epoch_key,
+                                                                      config))
+    else:
+        weights = [c.batch_size / config.batch_size for c in group_configs]
+
+        def epoch(state, epoch_key):
+            def minibatch(state, mbs):
+                every = jnp.concatenate([mb[1] for mb in mbs])
+                mean, spread = every.mean(), every.std() + 1e-8
+                aux = grads = None
+                for weight, (mb_batch, mb_advantages, mb_targets) in zip(weights, mbs, strict=True):
+                    part = parts.mean_grad(loss, state.params, (mb_batch, (mb_advantages - mean) / spread, mb_targets))
+                    part = jax.tree.map(lambda x, w=weight: w * x, part)
+                    aux, grads = part if grads is None else jax.tree.map(jnp.add, (aux, grads), part)
+                return state.apply_gradients(grads=grads), aux
+
+            mbs = tuple(shuffle_minibatches(group, jax.random.fold_in(epoch_key, g), c)
+                        for g, (group, c) in enumerate(zip(zip(batch, advantages, targets, strict=True),
+                                                           group_configs, strict=True)))
+            return jax.lax.scan(minibatch, state, mbs)
 
     train_state, aux = jax.lax.scan(epoch, train_state, jax.random.split(key, config.update_epochs))
     return train_state, jax.tree.map(jnp.mean, aux)
@@ -222,7 +249,8 @@ def rebase_schedule(train_state: TrainState, config: TrainConfig, update: int) -
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Runner:
-    """Everything the training loop carries between updates."""
+    """Everything the training loop carries between updates. With env groups (make_train's `groups`) the
+    per-environment fields (env_state to env_levels) and the curriculum state are tuples, one entry per group."""
 
     train_state: TrainState
     env_state: Any  # batched EnvState
@@ -280,42 +308,80 @@ def _batch_where(pred, a, b):
     return jax.tree.map(lambda x, y: jnp.where(pred.reshape(pred.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
+@dataclasses.dataclass(frozen=True)
+class EnvGroup:
+    """Environments that step together at one size class: `num_envs` of them on `env`, their levels from
+    `curriculum`. `shard(tree)` places arrays whose leading axis is num_envs (kinetix.agents.sharding), None keeps
+    them on the default device; `name` labels the group's metrics (solve_rate_NAME)."""
+
+    name: str
+    env: KinetixEnv
+    curriculum: Curriculum
+    num_envs: int
+    shard: Callable[[Any], Any] | None = None
+
+
 def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curriculum: Curriculum,
                callback: Callable[[dict], None] | None = None, init_params: Any = None,
-               shard: Callable[[Any], Any] | None = None) -> Trainer:
+               shard: Callable[[Any], Any] | None = None, groups: tuple[EnvGroup, ...] | None = None) -> Trainer:
     """A PPO trainer. `init_params`: start from these network parameters (fine-tuning) instead of fresh ones.
     `shard(tree) -> tree` places env-batched arrays (leading axis num_envs) on devices (see kinetix.agents.sharding);
-    None keeps everything on the default device."""
+    None keeps everything on the default device.
+
+    groups: instead of `env`, `curriculum` and `shard`, several groups of environments, each stepping its own
+    levels at its own size class (random levels of all sizes: an s level then costs the physics of s, not of l
+    padding; kinetix.agents.train). Their num_envs add up to config.num_envs; the network is one (entity
+    observations: it plays every size); each group rolls out, and its episodes start from its own curriculum."""
     action_type = env.config.action
     network = make_network(config, action_type)
-    E, T = config.num_envs, config.num_steps
+    T = config.num_steps
+    single = groups is None
+    if single:
+        groups = (EnvGroup("", env, curriculum, config.num_envs, shard),)
+    if sum(g.num_envs for g in groups) != config.num_envs:
+        raise ValueError(f"the env groups hold {sum(g.num_envs for g in groups)} environments, num_envs is "
+                         f"{config.num_envs}")
+    group_configs = tuple(dataclasses.replace(config, num_envs=g.num_envs) for g in groups)
     schedule = (optax.linear_schedule(config.lr, 0.0, config.num_updates * config.update_epochs
                                       * config.num_minibatches) if config.anneal_lr else config.lr)
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(schedule, eps=1e-5))
-    observe = jax.vmap(env.observe)
-    transition = jax.vmap(env.transition, in_axes=(0, 0, None))
-    if shard is not None:  # each device steps its own environments: no all-reduce inside the physics
-        from kinetix.devices import per_device
+    observes = [jax.vmap(g.env.observe) for g in groups]
+    transitions = []
+    for g in groups:
+        transition = jax.vmap(g.env.transition, in_axes=(0, 0, None))
+        if g.shard is not None:  # each device steps its own environments: no all-reduce inside the physics
+            from kinetix.devices import per_device
 
-        transition = per_device(transition, E, in_axes=(0, 0, None))
-    place = shard or (lambda tree: tree)
+            transition = per_device(transition, g.num_envs, in_axes=(0, 0, None))
+        transitions.append(transition)
+    places = [g.shard or (lambda tree: tree) for g in groups]
+    # one group keeps the Runner's fields plain (and its random keys those of a run without groups), so training
+    # states saved before groups existed still load
+    pack = (lambda values: values[0]) if single else tuple
+    unpack = (lambda field: (field,)) if single else tuple
+    key_of = (lambda key, g: key) if single else jax.random.fold_in
 
     def init(key: jax.Array) -> Runner:
         k_net, k_cur, k_pool, k_run = jax.random.split(key, 4)
-        cstate = curriculum.init(k_cur)
-        levels, ids = curriculum.sample(k_pool, cstate, E)
-        state = jax.vmap(fresh_state)(levels)
-        obs = observe(state)
+        fields = []
+        for g, group in enumerate(groups):
+            cstate = group.curriculum.init(key_of(k_cur, g))
+            levels, ids = group.curriculum.sample(key_of(k_pool, g), cstate, group.num_envs)
+            state = jax.vmap(fresh_state)(levels)
+            place = places[g]
+            fields.append((place(state), place(observes[g](state)), place(jnp.zeros((group.num_envs,), jnp.float32)),
+                           place(ids), place(levels), cstate))
         params = init_params
         if params is None:
-            params = network.init(k_net, jax.tree.map(lambda x: x[:1], obs))["params"]
+            params = network.init(k_net, jax.tree.map(lambda x: x[:1], fields[-1][1]))["params"]
         train_state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
-        return Runner(train_state, place(state), place(obs), place(jnp.zeros((E,), jnp.float32)), place(ids),
-                      place(levels), cstate, jax.tree.map(jnp.asarray, env_params), k_run, jnp.asarray(0, jnp.int32))
+        return Runner(train_state, *(pack(column) for column in zip(*fields, strict=True)),
+                      jax.tree.map(jnp.asarray, env_params), k_run, jnp.asarray(0, jnp.int32))
 
-    def update(runner: Runner) -> tuple[Runner, dict]:
-        key, k_pool, k_roll, k_upd, k_cur = jax.random.split(runner.key, 5)
-        pool_levels, pool_ids = curriculum.sample(k_pool, runner.curriculum, E)
+    def rollout(g: int, runner: Runner, carry: tuple, cstate: Any, k_pool: jax.Array, k_roll: jax.Array):
+        """Group g's `num_steps` steps: (carry after them, Transition (T, E_g), level ids per step, episode ends)."""
+        group, observe, transition, place = groups[g], observes[g], transitions[g], places[g]
+        pool_levels, pool_ids = group.curriculum.sample(k_pool, cstate, group.num_envs)
         pool_levels, pool_ids = place(pool_levels), place(pool_ids)
         pool_state = jax.vmap(fresh_state)(pool_levels)
         pool_obs = observe(pool_state)  # observed once per update, not once per step
@@ -344,30 +410,58 @@ def make_train(config: TrainConfig, env: KinetixEnv, env_params: EnvParams, curr
                            done.astype(jnp.float32), truncated_value)
             return carry, (t, step_ids, metrics)
 
-        carry = (runner.env_state, runner.obs, runner.episode_return, runner.env_level_ids, runner.env_levels)
         carry, (batch, step_ids, ep) = jax.lax.scan(env_step, carry, jax.random.split(k_roll, T))
-        env_state, obs, ep_return, env_ids, env_levels = carry
         # the successor of step t is step t + 1's observation unless the episode ended at t
-        next_value = jnp.concatenate([batch.value[1:], parts.forward(apply, obs)[1][None]])
+        next_value = jnp.concatenate([batch.value[1:], parts.forward(apply, carry[1])[1][None]])
         ended_by_limit = (batch.done > 0) & (batch.terminated == 0)
         batch = dataclasses.replace(batch, bootstrap_value=jnp.where(ended_by_limit, batch.bootstrap_value,
                                                                      next_value))
-        advantages, targets = compute_gae(batch.reward, batch.value, batch.bootstrap_value, batch.terminated,
-                                          batch.done, config.gamma, config.gae_lambda)
-        train_state, losses = ppo_update(network, action_type, config, runner.train_state, batch, advantages,
-                                         targets, k_upd)
-        feedback = Feedback(train_state.params, step_ids, advantages, env_ids, env_levels, runner.update_index)
-        cstate, env_ids = curriculum.update(k_cur, runner.curriculum, feedback)
-        episodes = ep["done"].sum()
-        metrics = dict(losses, update=runner.update_index + 1, env_steps=(runner.update_index + 1) * E * T,
-                       episodes=episodes, mean_return=ep["return"].sum() / jnp.maximum(episodes, 1),
-                       solve_rate=ep["solved"].sum() / jnp.maximum(episodes, 1),
-                       mean_reward=batch.reward.mean())
+        return carry, batch, step_ids, ep
+
+    def update(runner: Runner) -> tuple[Runner, dict]:
+        key, k_pool, k_roll, k_upd, k_cur = jax.random.split(runner.key, 5)
+        columns = [unpack(f) for f in (runner.env_state, runner.obs, runner.episode_return, runner.env_level_ids,
+                                       runner.env_levels)]
+        cstates = unpack(runner.curriculum)
+        carries, batches, step_ids, eps, advantages, targets = [], [], [], [], [], []
+        for g in range(len(groups)):
+            carry, batch, ids, ep = rollout(g, runner, tuple(column[g] for column in columns), cstates[g],
+                                            key_of(k_pool, g), key_of(k_roll, g))
+            adv, target = compute_gae(batch.reward, batch.value, batch.bootstrap_value, batch.terminated,
+                                      batch.done, config.gamma, config.gae_lambda)
+            for bucket, value in zip((carries, batches, step_ids, eps, advantages, targets),
+                                     (carry, batch, ids, ep, adv, target), strict=True):
+                bucket.append(value)
+        if single:
+            train_state, losses = ppo_update(network, action_type, config, runner.train_state, batches[0],
+                                             advantages[0], targets[0], k_upd)
+        else:
+            train_state, losses = ppo_update(network, action_type, config, runner.train_state, tuple(batches),
+                                             tuple(advantages), tuple(targets), k_upd, group_configs)
+        new_cstates, env_ids = [], []
+        for g, group in enumerate(groups):
+            _, _, _, ids_now, levels_now = carries[g]
+            feedback = Feedback(train_state.params, step_ids[g], advantages[g], ids_now, levels_now,
+                                runner.update_index)
+            cstate, ids_now = group.curriculum.update(key_of(k_cur, g), cstates[g], feedback)
+            new_cstates.append(cstate)
+            env_ids.append(ids_now)
+        episodes = sum(ep["done"].sum() for ep in eps)
+        steps = (runner.update_index + 1) * config.num_envs * T
+        metrics = dict(losses, update=runner.update_index + 1, env_steps=steps,
+                       episodes=episodes, mean_return=sum(ep["return"].sum() for ep in eps) / jnp.maximum(episodes, 1),
+                       solve_rate=sum(ep["solved"].sum() for ep in eps) / jnp.maximum(episodes, 1),
+                       mean_reward=(batches[0].reward.mean() if single else
+                                    sum(b.reward.sum() for b in batches) / (T * config.num_envs)))
+        if not single:  # each size class's own solve rate
+            for group, ep in zip(groups, eps, strict=True):
+                metrics[f"solve_rate_{group.name}"] = ep["solved"].sum() / jnp.maximum(ep["done"].sum(), 1)
         if callback is not None:
             # unordered: ordered effects are not supported across several devices; metrics carry their "update"
             jax.debug.callback(lambda m: callback({k: float(v) for k, v in m.items()}), metrics)
-        runner = Runner(train_state, env_state, obs, ep_return, env_ids, env_levels, cstate, runner.env_params, key,
-                        runner.update_index + 1)
+        state, obs, ep_return, _, levels = zip(*carries, strict=True)
+        runner = Runner(train_state, pack(state), pack(obs), pack(ep_return), pack(env_ids), pack(levels),
+                        pack(new_cstates), runner.env_params, key, runner.update_index + 1)
         return runner, metrics
 
     def run_chunk(runner: Runner, length: int):

@@ -20,6 +20,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import shlex
 import signal
@@ -42,7 +43,7 @@ from kinetix.agents.ppo import TrainConfig, make_train, rebase_schedule
 from kinetix.agents.rollout import run_episodes
 from kinetix.env import EnvParams, make_env
 from kinetix.level import LevelError
-from kinetix.level_source import RANDOM_LEVELS, level_source
+from kinetix.level_source import MIXED_SIZES, RANDOM_LEVELS, level_source
 
 # Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it), how each
 # update cuts its batch for the gradient steps (`--update-epochs`, `--num-minibatches`) and the learning rate
@@ -51,6 +52,9 @@ from kinetix.level_source import RANDOM_LEVELS, level_source
 # plan at the same update (ppo.rebase_schedule, train_agent); Adam's moments carry over whatever the rate.
 EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches", "train.lr")
 PLANNED = ("update_epochs", "num_minibatches", "lr")  # TrainConfig fields a plan records where a resume changed them
+# What a padded random-all run keeps when it goes on in size groups (train_agent's size_groups): all of its
+# learning but the curriculum state, whose buffer holds levels padded to l
+REGROUP_CARRIED = (".train_state", ".key", ".update_index")
 
 
 def setup_levels(level: str, curriculum: str | None, observation: str, action: str,
@@ -79,13 +83,60 @@ def setup_levels(level: str, curriculum: str | None, observation: str, action: s
     return env, source.params, factory, name
 
 
+def split_evenly(total: int, parts: int, unit: int = 1) -> list[int]:
+    """`total` cut into `parts` multiples of `unit`, as equal as possible (the larger ones last)."""
+    units, rest = divmod(total // unit, parts)
+    return [unit * (units + (i >= parts - rest)) for i in range(parts)]
+
+
+def size_groups_for(config: TrainConfig, devices: int) -> list[int]:
+    """How `kinetix train --level random-all` splits its envs over the size classes (MIXED_SIZES): equal groups,
+    each a multiple of the device count and cut whole into the minibatches. ValueError when num_envs allows none."""
+    minibatch_unit = config.num_minibatches // math.gcd(config.num_minibatches, config.num_steps)
+    unit = math.lcm(devices, minibatch_unit)
+    if config.num_envs % unit or config.num_envs < len(MIXED_SIZES) * unit:
+        raise ValueError(f"random-all trains each size class in its own group of environments: --num-envs must be a "
+                         f"multiple of {unit} (the devices and minibatches) and at least {len(MIXED_SIZES) * unit}, "
+                         f"got {config.num_envs} (or give --no-size-groups)")
+    return split_evenly(config.num_envs, len(MIXED_SIZES), unit)
+
+
+def _group_curriculum_config(curriculum_config: curricula.CurriculumConfig, g: int) -> curricula.CurriculumConfig:
+    """Group g's share of the sfl candidates and of the replay buffer (each size class keeps its own)."""
+    count = len(MIXED_SIZES)
+    for name, value in (("buffer size", curriculum_config.buffer_size), ("candidates", curriculum_config.candidates)):
+        if value < count:
+            raise ValueError(f"random-all keeps a buffer per size class: the curriculum {name} must be at least "
+                             f"{count}, got {value} (or give --no-size-groups)")
+    return dataclasses.replace(curriculum_config,
+                               buffer_size=split_evenly(curriculum_config.buffer_size, count)[g],
+                               candidates=split_evenly(curriculum_config.candidates, count)[g])
+
+
+def random_all_groups(counts: list[int], curriculum: str | None, observation: str, action: str,
+                curriculum_config: curricula.CurriculumConfig, dense_reward: float | None,
+                solve_rate_fn_for: Callable, sharder: Callable[[int], Callable | None]) -> tuple:
+    """random-all's env groups (ppo.EnvGroup), one per size class of MIXED_SIZES with `counts` envs each:
+    random levels of that class, the curriculum over them with the group's share of the buffer and candidates.
+    solve_rate_fn_for(env): sfl's scorer on that env; sharder(num_envs): the placement of a group's arrays."""
+    from kinetix.agents.ppo import EnvGroup
+
+    groups = []
+    for g, (size, count) in enumerate(zip(MIXED_SIZES, counts, strict=True)):
+        env, _, factory, _ = setup_levels(f"random-{size}", curriculum, observation, action,
+                                          _group_curriculum_config(curriculum_config, g), dense_reward)
+        groups.append(EnvGroup(size, env, factory(solve_rate_fn_for(env)), count, sharder(count)))
+    return tuple(groups)
+
+
 def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, curriculum: str | None = None,
                 init: str | None = None, seed: int = 0, config: TrainConfig | None = None,
                 observation: str = "entity", action: str = "multi_discrete", dense_reward: float | None = None,
                 curriculum_config: curricula.CurriculumConfig | None = None, shard: bool = True,
                 progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
                 command: str | None = None, resume: bool = False, checkpoint_every: float | None = None,
-                checkpoint_every_updates: int | None = None, save_state: bool = False) -> dict:
+                checkpoint_every_updates: int | None = None, save_state: bool = False,
+                size_groups: bool | None = None) -> dict:
     """Train, then write OUT/checkpoint, OUT/metrics.json, OUT/curve.png and OUT/resume/. Returns the metrics.json
     content.
 
@@ -102,7 +153,12 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     annealed rate is then the new lr's line at the same update. checkpoint_every (minutes of
     wall-clock time) / checkpoint_every_updates: also write everything between chunks at that cadence, so a
     killed job loses at most that much work. Either of these implies save_state. In a multi-process run only
-    process 0 writes."""
+    process 0 writes.
+
+    size_groups (random-all only): step each size class's levels in its own group of environments at its own size
+    (ppo.EnvGroup; a third of the envs each, every group with its own curriculum and a third of its buffer and sfl
+    candidates) instead of padding every level to l in one batch. The default: on for new random-all runs (not
+    with flat observations, whose length depends on the size), and for a resumed run whatever it was saved with."""
     from kinetix.agents import multihost
     from kinetix.agents import resume as resume_module
 
@@ -127,36 +183,70 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                                                              curriculum_config, dense_reward)
     if init_params is not None and ckpt.env["observation"] != "entity" and ckpt.env["size"] != env.config.size.name:
         raise CheckpointError(f"--init {init} fits size {ckpt.env['size']} only, the levels are {env.config.size.name}")
-    run_id = run_identity(level, config, curriculum_name, curriculum_config, seed, init, env, env_params, factory)
     saved = resume_module.load_latest(out) if resume else None
-    if saved is not None:
-        resume_module.compare_runs(saved[0]["run"], run_id, ignore=EXTENDABLE)
+    saved_groups = saved is not None and bool(saved[0]["run"].get("size_groups"))
+    if size_groups is None:
+        size_groups = saved_groups if saved is not None else level == "random-all" and observation != "flat"
+    # a random-all run padded to l, resumed with size_groups=True, goes on in groups: its learning carries over
+    # (parameters, optimiser, key, update index); its environments and curriculum buffer start afresh
+    regroup = saved is not None and size_groups and not saved_groups
+    if size_groups and level != "random-all":
+        raise ValueError(f"size groups are for --level random-all, not {level}")
+    if size_groups and observation == "flat":
+        raise ValueError("flat observations differ in length between size classes: train random-all with them "
+                         "padded to l (--no-size-groups)")
 
     if not shard and jax.process_count() > 1:
         raise ValueError("--no-shard cannot be used with several processes: each would train the whole batch alone")
-    sharder = None
+    mesh = None
     if shard and jax.device_count() > 1 and (jax.process_count() > 1 or config.num_envs % jax.device_count() == 0):
         # (one process with a batch its devices do not divide trains on one device, as kinetix.devices.batch_devices)
-        from kinetix.agents.sharding import batch_sharder, local_mesh
+        from kinetix.agents.sharding import local_mesh
 
-        sharder = batch_sharder(local_mesh(jax.devices()), config.num_envs)  # all processes' devices
+        mesh = local_mesh(jax.devices())  # all processes' devices
+    group_sizes = None
+    if size_groups:
+        try:
+            group_sizes = size_groups_for(config, 1 if mesh is None else jax.device_count())
+        except ValueError:
+            if mesh is None or jax.process_count() > 1:
+                raise
+            mesh, group_sizes = None, size_groups_for(config, 1)  # as above: one device when they do not divide
+    run_id = run_identity(level, config, curriculum_name, curriculum_config, seed, init, env, env_params, factory)
+    if group_sizes is not None:
+        run_id["size_groups"] = dict(zip(MIXED_SIZES, group_sizes, strict=True))
+    if saved is not None:
+        resume_module.compare_runs(saved[0]["run"], run_id, ignore=EXTENDABLE + (("size_groups",) if regroup else ()))
+
+    def sharder(num_envs: int):
+        from kinetix.agents.sharding import batch_sharder
+
+        return None if mesh is None else batch_sharder(mesh, num_envs)
 
     network_holder = {}
 
-    def solve_rate_fn(key, net_params, levels, attempts):
-        from kinetix.agents import distributions
+    def solve_rate_fn_for(env):
+        def solve_rate_fn(key, net_params, levels, attempts):
+            from kinetix.agents import distributions
 
-        network = network_holder["network"]
-        repeated = jax.tree.map(lambda x: jnp.repeat(x, attempts, axis=0), levels)
+            network = network_holder["network"]
+            repeated = jax.tree.map(lambda x: jnp.repeat(x, attempts, axis=0), levels)
 
-        def act(k, obs):
-            outputs, _ = network.apply({"params": net_params}, jax.tree.map(lambda x: x[None], obs))
-            return distributions.sample(k, outputs, env.config.action)[0]
+            def act(k, obs):
+                outputs, _ = network.apply({"params": net_params}, jax.tree.map(lambda x: x[None], obs))
+                return distributions.sample(k, outputs, env.config.action)[0]
 
-        solved, _ = run_episodes(env, env_params, act, repeated, key, int(env_params.max_timesteps))
-        return solved.reshape(-1, attempts).mean(-1)
+            solved, _ = run_episodes(env, env_params, act, repeated, key, int(env_params.max_timesteps))
+            return solved.reshape(-1, attempts).mean(-1)
 
-    trainer = make_train(config, env, env_params, factory(solve_rate_fn), init_params=init_params, shard=sharder)
+        return solve_rate_fn
+
+    groups = None
+    if group_sizes is not None:
+        groups = random_all_groups(group_sizes, curriculum, observation, action, curriculum_config, dense_reward,
+                                   solve_rate_fn_for, sharder)
+    trainer = make_train(config, env, env_params, factory(solve_rate_fn_for(env)), init_params=init_params,
+                         shard=sharder(config.num_envs), groups=groups)
     network_holder["network"] = trainer.network
     runner = jax2d.jit(trainer.init)(jax.random.key(seed))
     history: list[dict] = []
@@ -172,10 +262,18 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         if len(history) > config.num_chunks * config.updates_per_call:
             raise CheckpointError(f"the run in {out} has trained {history[-1]['env_steps']:.0f} steps already; "
                                   f"--steps {steps} would end before that (give at least that many to extend it)")
+        if regroup:
+            if plans[-1]["update"] != len(history):
+                plans.append({"update": len(history), "steps": steps})
+            plans[-1] = {**plans[-1], "size_groups": run_id["size_groups"]}  # where the run went on in groups
+            arrays = {path: array for path, array in arrays.items() if path.startswith(REGROUP_CARRIED)}
+            warnings.warn(f"{out}: from update {len(history)} on in size groups {run_id['size_groups']}; the "
+                          f"environments and the curriculum's buffer start afresh", stacklevel=2)
         runner = resume_module.restore(runner, arrays)
         runner = dataclasses.replace(runner, train_state=rebase_schedule(runner.train_state, config, len(history)))
         if resume_module.is_compact(arrays):  # fresh environments: their levels are no buffer slot's (-2)
-            runner = dataclasses.replace(runner, env_level_ids=runner.env_level_ids * 0 - 2)
+            runner = dataclasses.replace(runner, env_level_ids=jax.tree.map(lambda ids: ids * 0 - 2,
+                                                                            runner.env_level_ids))
             warnings.warn(f"{out}: a compact training state; every environment restarts on a fresh level",
                           stacklevel=2)
     start = time.perf_counter()
@@ -193,7 +291,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         summary = {"config": dataclasses.asdict(config), **info,
                    "curriculum_config": (dataclasses.asdict(curriculum_config) if curriculum_name in ("sfl", "plr")
                                          else None),
-                   "size": env.config.size.name, "devices": jax.device_count(), "processes": jax.process_count(),
+                   "size": env.config.size.name, "size_groups": run_id.get("size_groups"),
+                   "devices": jax.device_count(), "processes": jax.process_count(),
                    "resumed_at_update": None if saved is None else len(saved[0]["history"]), "plans": plans,
                    "complete": len(history) == config.num_chunks * config.updates_per_call,  # False mid-run
                    "elapsed_seconds": elapsed, "metrics": history}
@@ -349,7 +448,8 @@ def settings_from_args(args: argparse.Namespace) -> dict:
     settings = {"level": level, "steps": pick("steps", 1_000_000), "curriculum": pick("curriculum"),
                 "init": pick("init"), "seed": pick("seed", 0), "config": config,
                 "observation": pick("observation", config.network), "action": stored.get("action", "multi_discrete"),
-                "dense_reward": pick("dense_reward"), "resume": bool(args.resume)}
+                "dense_reward": pick("dense_reward"), "resume": bool(args.resume),
+                "size_groups": getattr(args, "size_groups", None)}
     curriculum_config = dict(stored.get("curriculum_config") or {})
     for option, field in (("sfl_refresh_every", "refresh_every"), ("sfl_candidates", "candidates"),
                           ("buffer_size", "buffer_size")):

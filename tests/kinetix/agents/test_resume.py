@@ -365,8 +365,47 @@ def test_sfl_trains_on_random_all_levels(tmp_path):
     summary = train_agent("random-all", tmp_path, steps=4 * 8 * 2, config=config, curriculum="sfl",
                           curriculum_config=curriculum, save_state=True)
     assert summary["complete"] and len(summary["metrics"]) == 2
-    meta, _, _ = resume.load_latest(tmp_path)
+    meta, arrays, _ = resume.load_latest(tmp_path)
     assert meta["arguments"]["level"] == "random-all"
+    # each size class in its own group of environments at its own size, with its own sfl buffer
+    assert summary["size_groups"] == meta["run"]["size_groups"] == {"s": 1, "m": 1, "l": 2}
+    assert {"solve_rate_s", "solve_rate_m", "solve_rate_l"} <= set(summary["metrics"][-1])
+    assert arrays[".env_state[0].level.sim.bodies.active"].shape == (1, 7)  # s: 5 polygons + 2 circles
+    assert arrays[".env_state[2].level.sim.bodies.active"].shape == (2, 16)  # l
+    assert arrays[".curriculum[1]['scores']"].shape == (1,)  # m's third of the buffer
+    longer = train_agent("random-all", tmp_path, steps=4 * 8 * 4, config=config, curriculum="sfl",
+                         curriculum_config=curriculum, resume=True)  # resumes with its groups
+    assert longer["complete"] and len(longer["metrics"]) == 4 and longer["size_groups"] == summary["size_groups"]
+
+
+@pytest.mark.slow
+def test_a_random_all_run_padded_to_l_resumes_padded_or_goes_on_in_size_groups(tmp_path):
+    """Runs started before size groups (every level padded to l in one batch) resume as they were saved, or, asked
+    to, go on in size groups with everything they learned."""
+    config = dataclasses.replace(CONFIG, width=8, hidden=16)
+    summary = train_agent("random-all", tmp_path, steps=64, config=config, save_state=True, size_groups=False)
+    _, arrays, _ = resume.load_latest(tmp_path)
+    assert summary["size_groups"] is None and arrays[".env_state.level.sim.bodies.active"].shape == (4, 16)
+    longer = train_agent("random-all", tmp_path, steps=128, config=config, resume=True)
+    assert longer["complete"] and len(longer["metrics"]) == 4 and longer["size_groups"] is None
+    _, padded, _ = resume.load_latest(tmp_path)
+    # asked to, it goes on in size groups: the same parameters, optimiser, key and update count, fresh environments
+    with pytest.warns(UserWarning, match="from update 4 on in size groups"):
+        grouped = train_agent("random-all", tmp_path, steps=192, config=config, resume=True, size_groups=True,
+                              should_stop=lambda: True)  # stops before its first chunk: writes what it restored
+    assert grouped["size_groups"] == {"s": 1, "m": 1, "l": 2} and len(grouped["metrics"]) == 4
+    assert grouped["plans"][-1] == {"update": 4, "steps": 192, "size_groups": {"s": 1, "m": 1, "l": 2}}
+    meta, arrays, _ = resume.load_latest(tmp_path)
+    assert meta["run"]["size_groups"] == grouped["size_groups"]
+    carried = [path for path in padded if path.startswith((".train_state", ".key", ".update_index"))]
+    assert len(carried) > 10 and all(np.array_equal(arrays[path], padded[path]) for path in carried)
+    assert arrays[".env_state[0].level.sim.bodies.active"].shape == (1, 7)
+    again = train_agent("random-all", tmp_path, steps=192, config=config, resume=True)  # now in groups
+    assert again["complete"] and len(again["metrics"]) == 6 and again["size_groups"] == grouped["size_groups"]
+    with pytest.raises(CheckpointError, match="size_groups: {'s': 1, 'm': 1, 'l': 2} in the checkpoint, None now"):
+        train_agent("random-all", tmp_path, steps=256, config=config, resume=True, size_groups=False)
+    with pytest.raises(ValueError, match="size groups are for --level random-all"):
+        train_agent("random-s", tmp_path / "s", steps=32, config=config, size_groups=True)
 
 
 def test_a_compact_state_continues_the_run_with_fresh_environments(reference, tmp_path, capsys):

@@ -266,7 +266,9 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
             if plans[-1]["update"] != len(history):
                 plans.append({"update": len(history), "steps": steps})
             plans[-1] = {**plans[-1], "size_groups": run_id["size_groups"]}  # where the run went on in groups
-            arrays = {path: array for path, array in arrays.items() if path.startswith(REGROUP_CARRIED)}
+            fresh = {path: array for path, array in resume_module.flatten(resume_module.host_tree(runner)).items()
+                     if path.startswith(".curriculum")}  # the groups' own empty buffers
+            arrays = {**fresh, **{path: array for path, array in arrays.items() if path.startswith(REGROUP_CARRIED)}}
             warnings.warn(f"{out}: from update {len(history)} on in size groups {run_id['size_groups']}; the "
                           f"environments and the curriculum's buffer start afresh", stacklevel=2)
         runner = resume_module.restore(runner, arrays)
@@ -274,8 +276,9 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         if resume_module.is_compact(arrays):  # fresh environments: their levels are no buffer slot's (-2)
             runner = dataclasses.replace(runner, env_level_ids=jax.tree.map(lambda ids: ids * 0 - 2,
                                                                             runner.env_level_ids))
-            warnings.warn(f"{out}: a compact training state; every environment restarts on a fresh level",
-                          stacklevel=2)
+            if not regroup:  # (which said so already)
+                warnings.warn(f"{out}: a compact training state; every environment restarts on a fresh level",
+                              stacklevel=2)
     start = time.perf_counter()
     arguments = {"level": level if level in RANDOM_LEVELS else str(Path(level).resolve()), "steps": steps,
                  "curriculum": curriculum, "init": init, "seed": seed, "observation": observation, "action": action,

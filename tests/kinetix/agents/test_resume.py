@@ -383,15 +383,16 @@ def test_a_random_all_run_padded_to_l_resumes_padded_or_goes_on_in_size_groups(t
     """Runs started before size groups (every level padded to l in one batch) resume as they were saved, or, asked
     to, go on in size groups with everything they learned."""
     config = dataclasses.replace(CONFIG, width=8, hidden=16)
-    summary = train_agent("random-all", tmp_path, steps=64, config=config, save_state=True, size_groups=False)
+    plr = dict(curriculum="plr", curriculum_config=CURRICULUM)  # a curriculum with a state: PLR's buffer
+    summary = train_agent("random-all", tmp_path, steps=64, config=config, save_state=True, size_groups=False, **plr)
     _, arrays, _ = resume.load_latest(tmp_path)
     assert summary["size_groups"] is None and arrays[".env_state.level.sim.bodies.active"].shape == (4, 16)
-    longer = train_agent("random-all", tmp_path, steps=128, config=config, resume=True)
+    longer = train_agent("random-all", tmp_path, steps=128, config=config, **plr, resume=True)
     assert longer["complete"] and len(longer["metrics"]) == 4 and longer["size_groups"] is None
     _, padded, _ = resume.load_latest(tmp_path)
     # asked to, it goes on in size groups: the same parameters, optimiser, key and update count, fresh environments
     with pytest.warns(UserWarning, match="from update 4 on in size groups"):
-        grouped = train_agent("random-all", tmp_path, steps=192, config=config, resume=True, size_groups=True,
+        grouped = train_agent("random-all", tmp_path, steps=192, config=config, **plr, resume=True, size_groups=True,
                               should_stop=lambda: True)  # stops before its first chunk: writes what it restored
     assert grouped["size_groups"] == {"s": 1, "m": 1, "l": 2} and len(grouped["metrics"]) == 4
     assert grouped["plans"][-1] == {"update": 4, "steps": 192, "size_groups": {"s": 1, "m": 1, "l": 2}}
@@ -400,10 +401,11 @@ def test_a_random_all_run_padded_to_l_resumes_padded_or_goes_on_in_size_groups(t
     carried = [path for path in padded if path.startswith((".train_state", ".key", ".update_index"))]
     assert len(carried) > 10 and all(np.array_equal(arrays[path], padded[path]) for path in carried)
     assert arrays[".env_state[0].level.sim.bodies.active"].shape == (1, 7)
-    again = train_agent("random-all", tmp_path, steps=192, config=config, resume=True)  # now in groups
+    assert (arrays[".curriculum[2]['scores']"] == NEG).all()  # l's own buffer (2 slots), empty until played
+    again = train_agent("random-all", tmp_path, steps=192, config=config, **plr, resume=True)  # now in groups
     assert again["complete"] and len(again["metrics"]) == 6 and again["size_groups"] == grouped["size_groups"]
     with pytest.raises(CheckpointError, match="size_groups: {'s': 1, 'm': 1, 'l': 2} in the checkpoint, None now"):
-        train_agent("random-all", tmp_path, steps=256, config=config, resume=True, size_groups=False)
+        train_agent("random-all", tmp_path, steps=256, config=config, **plr, resume=True, size_groups=False)
     with pytest.raises(ValueError, match="size groups are for --level random-all"):
         train_agent("random-s", tmp_path / "s", steps=32, config=config, size_groups=True)
 

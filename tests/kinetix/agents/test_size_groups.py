@@ -101,3 +101,15 @@ def test_groups_step_their_own_size_class_and_train_one_network():
     with pytest.raises(ValueError, match="hold 8 environments, num_envs is 12"):
         ppo.make_train(dataclasses.replace(config, num_envs=12), groups[-1].env, EnvParams(), groups[-1].curriculum,
                        groups=tuple(groups))
+
+
+def test_bench_train_measures_random_all_in_groups_and_padded():
+    from kinetix.agents import bench
+    from kinetix.cli import build_parser
+
+    args = build_parser().parse_args(["bench", "train", "--sizes", "all,all-padded"])
+    assert args.sizes == ["all", "all-padded"]
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["bench", "train", "--sizes", "everything"])
+    result = bench.measure("all", num_envs=6, num_steps=2, chunks=1, updates_per_call=1)
+    assert result["size"] == "all" and result["env_steps"] == 12 and result["steps_per_second"] > 0

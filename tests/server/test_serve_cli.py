@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[2]
 def _serve(tmp_path, *options: str, until: str) -> tuple[subprocess.Popen, list[str]]:
     """`kinetix serve` on a free port with its data in tmp_path (away from the user's own gallery), and its output up
     to the first line that starts with `until`. JAX_PLATFORMS is left for kinetix to choose."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # PYTHONFAULTHANDLER: a SIGABRT (what _rest_after_ctrl_c sends a hung server) prints every thread's stack
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"}
     env.pop("JAX_PLATFORMS", None)
     process = subprocess.Popen([sys.executable, "-m", "kinetix", "serve", "--port", "0", "--data", str(tmp_path),
                                 *options], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -32,13 +33,21 @@ def _serve(tmp_path, *options: str, until: str) -> tuple[subprocess.Popen, list[
 
 
 def _rest_after_ctrl_c(process: subprocess.Popen, timeout: float) -> str:
-    """The process's remaining output once it exits; if it does not within `timeout` s, it is killed and the test
-    fails with that output (a hung shutdown prints every thread's stack after 20 s, server/app.py)."""
+    """The process's remaining output once it exits; if it does not within `timeout` s, the test fails with that
+    output and every thread's stack. (A shutdown that hangs prints them after 20 s, server/app.py; but in two CI runs
+    the server never even printed "Shutting down", so the Ctrl+C itself went unanswered: a SIGABRT makes the
+    faulthandler that _serve enables print them wherever the process is stuck, before it is killed.)"""
     try:
         return process.communicate(timeout=timeout)[0]
     except subprocess.TimeoutExpired:
-        process.kill()
-        pytest.fail(f"kinetix serve did not exit within {timeout} s of Ctrl+C; it printed:\n{process.communicate()[0]}")
+        process.send_signal(signal.SIGABRT)
+        try:
+            rest = process.communicate(timeout=15)[0]
+        except subprocess.TimeoutExpired:
+            process.kill()
+            rest = process.communicate()[0]
+        pytest.fail(f"kinetix serve did not exit within {timeout} s of Ctrl+C; it printed (then its stacks on "
+                    f"SIGABRT):\n{rest}")
 
 
 def test_serve_prints_the_url_and_stops_on_ctrl_c(tmp_path):

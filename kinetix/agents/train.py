@@ -205,7 +205,13 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
 
         mesh = local_mesh(jax.devices())  # all processes' devices
     group_sizes = None
-    if size_groups:
+    if size_groups and saved_groups:  # a run's groups are part of it, whatever the devices it resumes on
+        group_sizes = [saved[0]["run"]["size_groups"][size] for size in MIXED_SIZES]
+        if mesh is not None and any(n % jax.device_count() for n in group_sizes):
+            if jax.process_count() > 1:
+                raise ValueError(f"the run's size groups {group_sizes} do not split over {jax.device_count()} devices")
+            mesh = None  # as above: one device when they do not divide
+    elif size_groups:
         try:
             group_sizes = size_groups_for(config, 1 if mesh is None else jax.device_count())
         except ValueError:

@@ -6,6 +6,7 @@ atomically and a checkpoint of another configuration is refused with a clear err
 
 import dataclasses
 import json
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -432,3 +433,22 @@ def test_a_compact_state_continues_the_run_with_fresh_environments(reference, tm
     assert np.isfinite([m["mean_return"] for m in summary["metrics"][8:]]).all()
     assert resume.main(["compact", str(tmp_path / "nothing")]) == 2
     assert "no training state" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_run_in_size_groups_keeps_its_groups_on_other_devices(tmp_path):
+    """The groups are part of the run: saved on one device (8 envs: 2, 3, 3), it resumes with them wherever the
+    devices would cut 8 envs otherwise (on two: 2, 2, 4), on one device if they do not split over the devices."""
+    config = dataclasses.replace(CONFIG, num_envs=8, width=8, hidden=16)
+    first = train_agent("random-all", tmp_path, steps=128, config=config, save_state=True, shard=False)
+    assert first["size_groups"] == {"s": 2, "m": 3, "l": 3}
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # two CPU devices in the child: --devices 2
+    result = subprocess.run([sys.executable, "-m", "kinetix", "train", "--resume", str(tmp_path), "--steps", "256",
+                             "--devices", "2"], cwd=Path(__file__).resolve().parents[3], env=env, capture_output=True,
+                            text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    longer = json.loads((tmp_path / "metrics.json").read_text())
+    assert longer["devices"] == 2 and len(longer["metrics"]) == 4 and longer["size_groups"] == first["size_groups"]

@@ -372,6 +372,9 @@ def _megabytes(value: int | None) -> int | None:
 
 def serve(args) -> int:
     """`kinetix serve`: start, print the URL, run until Ctrl+C (or SIGTERM), then shut down cleanly."""
+    # Python answers Ctrl+C only where SIGINT was not inherited as ignored; a job started with `&` from a script (a
+    # test run launched in the background, two CI failures) inherits it ignored, and the server then never stopped
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     # viser's websocket server logs its internal port at INFO; users must open only the URL printed below.
     logging.getLogger("websockets").setLevel(logging.WARNING)

@@ -241,7 +241,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sfl and plr: levels kept in the buffer (default: 64; for sfl at most --sfl-candidates)")
     parser.add_argument("--init", metavar="general|DIR", help="fine-tune this agent instead of starting from scratch")
     parser.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
-    parser.add_argument("--num-envs", type=positive_int, default=None, help="parallel environments (default: 32)")
+    parser.add_argument("--num-envs", type=positive_int, default=None,
+                        help="parallel environments (default: 32); with --resume, the count from then on (a bigger "
+                             "batch on a GPU: the environments restart on fresh levels)")
     parser.add_argument("--num-steps", type=positive_int, default=None, help="rollout length per update (default: 64)")
     parser.add_argument("--updates-per-call", type=positive_int, default=None,
                         help="updates per jitted chunk between progress reports (default: 4)")
@@ -278,7 +280,7 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", metavar="DIR",
                         help="continue the run in DIR (its output directory) from its last checkpoint; settings "
                              "not given are the run's own, settings given must equal them but --steps, "
-                             "--update-epochs, --num-minibatches and --lr")
+                             "--update-epochs, --num-minibatches, --lr and --num-envs")
     parser.add_argument("--checkpoint-every", type=float, default=None, metavar="MINUTES",
                         help="also write the checkpoint and training state every MINUTES of wall-clock time "
                              "(default: only at the end)")

@@ -100,3 +100,11 @@ def test_a_profile_on_this_machine_counts_kernels_per_stage_of_the_step(tmp_path
     stages = result["by_stage"]
     assert {"jax2d_narrow_phase", "jax2d_substeps", "jax2d_static_walls"} <= set(stages), stages
     assert all(entry["per_step"] > 0 for name, entry in stages.items() if name.startswith("jax2d_"))
+
+
+def test_the_general_agents_run_resumes_at_the_batch_asked_for():
+    """bench/gpu.sh resumes the run with a GPU's batch (TRAIN_ARGS), and its own total unless --train-steps."""
+    cmd = gpu.train_command("kinetix/agents/general/sfl-large", None, "--num-envs 4096 --num-minibatches 32")
+    assert cmd[cmd.index("--resume") + 1] == "kinetix/agents/general/sfl-large" and "--steps" not in cmd
+    assert cmd[-4:] == ["--num-envs", "4096", "--num-minibatches", "32"]
+    assert gpu.train_command("r", 10, "")[-2:] == ["--steps", "10"]

@@ -46,12 +46,14 @@ from kinetix.level import LevelError
 from kinetix.level_source import MIXED_SIZES, RANDOM_LEVELS, level_source
 
 # Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it), how each
-# update cuts its batch for the gradient steps (`--update-epochs`, `--num-minibatches`) and the learning rate
-# (`--lr`, the rate an annealed schedule starts its line from). Nothing carried from one update to the next
-# depends on them but an annealed rate's step count, which the resume re-bases so that the rate stays that of the
-# plan at the same update (ppo.rebase_schedule, train_agent); Adam's moments carry over whatever the rate.
-EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches", "train.lr")
-PLANNED = ("update_epochs", "num_minibatches", "lr")  # TrainConfig fields a plan records where a resume changed them
+# update cuts its batch for the gradient steps (`--update-epochs`, `--num-minibatches`), the learning rate
+# (`--lr`, the rate an annealed schedule starts its line from) and the number of environments (`--num-envs`: a
+# bigger batch where a GPU is lent; the environments restart on fresh levels). Nothing carried from one update to
+# the next depends on them but an annealed rate's step count, which the resume re-bases so that the rate stays that
+# of the plan at the same update (ppo.rebase_schedule, train_agent); Adam's moments carry over whatever the rate.
+EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches", "train.lr", "train.num_envs")
+# TrainConfig fields a plan records where a resume changed them
+PLANNED = ("update_epochs", "num_minibatches", "lr", "num_envs")
 # What a padded random-all run keeps when it goes on in size groups (train_agent's size_groups): all of its
 # learning but the curriculum state, whose buffer holds levels padded to l
 REGROUP_CARRIED = (".train_state", ".key", ".update_index")
@@ -140,20 +142,23 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     """Train, then write OUT/checkpoint, OUT/metrics.json, OUT/curve.png and OUT/resume/. Returns the metrics.json
     content.
 
-    save_state: also write the whole training state to OUT/resume (kinetix.agents.resume) at the end, stopped
-    early or not, so the run can be resumed (`kinetix train` always does; off by default for library callers
-    such as the server, whose specialists need only the checkpoint). resume: continue the run whose training
-    state is in OUT/resume instead of starting afresh; every setting but `steps`, `config.update_epochs`,
-    `config.num_minibatches` and `config.lr` must equal the saved run's (CheckpointError naming the differences
-    otherwise). A different `steps` re-plans the run (longer or shorter, not shorter than what is done): an
-    annealed learning rate is from then on that of a `steps`-long run at the same update (it jumps where the plan
-    changes; a finished run's 0 becomes lr * (1 - done / steps)), and with a constant one the result equals a run
-    planned that long from the start. Different epochs or minibatches cut the updates from then on differently;
-    the rate stays lr * (1 - update / updates planned). A different `config.lr` holds from the resume on: an
-    annealed rate is then the new lr's line at the same update. checkpoint_every (minutes of
-    wall-clock time) / checkpoint_every_updates: also write everything between chunks at that cadence, so a
-    killed job loses at most that much work. Either of these implies save_state. In a multi-process run only
-    process 0 writes.
+    save_state: also write the whole training state to OUT/resume (kinetix.agents.resume) at the end, stopped early
+    or not, so the run can be resumed (`kinetix train` always does; off by default for library callers such as the
+    server, whose specialists need only the checkpoint). resume: continue the run whose training state is in
+    OUT/resume instead of starting afresh; every setting but `steps`, `config.update_epochs`,
+    `config.num_minibatches`, `config.lr` and `config.num_envs` must equal the saved run's (CheckpointError naming
+    the differences otherwise). A different `steps` re-plans the run (longer or shorter, not shorter than what is
+    done): an annealed learning rate is from then on that of a `steps`-long run at the same update (it jumps where
+    the plan changes; a finished run's 0 becomes lr * (1 - done / steps)), and with a constant one the result equals
+    a run planned that long from the start. Different epochs or minibatches cut the updates from then on
+    differently; the rate stays lr * (1 - update / updates planned). A different `config.lr` holds from the resume
+    on: an annealed rate is then the new lr's line at the same update. A different `config.num_envs` (a bigger batch
+    on a GPU) carries the learning and the curriculum's buffer over and starts every environment on a fresh level
+    (as a compact state does), random-all's size groups cut afresh; the run goes on to `steps` env steps in updates
+    of the new batch (the plan records the env steps done where it changed, so a later resume counts them), with an
+    annealed rate re-based as for a new length. checkpoint_every (minutes of wall-clock time) /
+    checkpoint_every_updates: also write everything between chunks at that cadence, so a killed job loses at most
+    that much work. Either of these implies save_state. In a multi-process run only process 0 writes.
 
     size_groups (random-all only): step each size class's levels in its own group of environments at its own size
     (ppo.EnvGroup; a third of the envs each, every group with its own curriculum and a third of its buffer and sfl
@@ -184,6 +189,25 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     if init_params is not None and ckpt.env["observation"] != "entity" and ckpt.env["size"] != env.config.size.name:
         raise CheckpointError(f"--init {init} fits size {ckpt.env['size']} only, the levels are {env.config.size.name}")
     saved = resume_module.load_latest(out) if resume else None
+    history: list[dict] = []
+    elapsed_before = 0.0
+    plans = [{"update": 0, "steps": steps}]  # the run's length and batch cut, and where a --resume changed them
+    steps_offset = 0  # env steps done before the batch size in force, beyond its update count's
+    resized = False
+    if saved is not None:
+        history, elapsed_before = list(saved[0]["history"]), float(saved[0]["elapsed"])
+        plans = replan(saved[0], len(history), steps, {k: getattr(config, k) for k in PLANNED})
+        # resumed with another number of environments: its learning and curriculum carry over, its environments
+        # restart on fresh levels, and its size groups are cut afresh
+        resized = saved[0]["run"]["train"]["num_envs"] != config.num_envs
+        if resized:
+            plans[-1] = {**plans[-1], "env_steps": history[-1]["env_steps"] if history else 0}
+        steps_offset = batch_offset(plans, config)
+        if steps_offset:  # the plans count env steps; the loop and the schedule count updates of this batch
+            if steps - steps_offset < 1:
+                raise CheckpointError(f"the run in {out} has trained {history[-1]['env_steps']:.0f} steps already; "
+                                      f"--steps {steps} would end before that (give at least that many to extend it)")
+            config = dataclasses.replace(config, total_timesteps=steps - steps_offset)
     saved_groups = saved is not None and bool(saved[0]["run"].get("size_groups"))
     if size_groups is None:
         size_groups = saved_groups if saved is not None else level == "random-all" and observation != "flat"
@@ -205,7 +229,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
 
         mesh = local_mesh(jax.devices())  # all processes' devices
     group_sizes = None
-    if size_groups and saved_groups:  # a run's groups are part of it, whatever the devices it resumes on
+    if size_groups and saved_groups and not resized:  # a run's groups are part of it, whatever the devices
         group_sizes = [saved[0]["run"]["size_groups"][size] for size in MIXED_SIZES]
         if mesh is not None and any(n % jax.device_count() for n in group_sizes):
             if jax.process_count() > 1:
@@ -222,7 +246,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     if group_sizes is not None:
         run_id["size_groups"] = dict(zip(MIXED_SIZES, group_sizes, strict=True))
     if saved is not None:
-        resume_module.compare_runs(saved[0]["run"], run_id, ignore=EXTENDABLE + (("size_groups",) if regroup else ()))
+        resume_module.compare_runs(saved[0]["run"], run_id,
+                                   ignore=EXTENDABLE + (("size_groups",) if regroup or resized else ()))
 
     def sharder(num_envs: int):
         from kinetix.agents.sharding import batch_sharder
@@ -255,13 +280,15 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
                          shard=sharder(config.num_envs), groups=groups)
     network_holder["network"] = trainer.network
     runner = jax2d.jit(trainer.init)(jax.random.key(seed))
-    history: list[dict] = []
-    elapsed_before = 0.0
-    plans = [{"update": 0, "steps": steps}]  # the run's length and batch cut, and where a --resume changed them
     if saved is not None:
         meta, arrays, _ = saved
-        history, elapsed_before = list(meta["history"]), float(meta["elapsed"])
-        plans = replan(meta, len(history), steps, {k: getattr(config, k) for k in PLANNED})
+        if resized:
+            if group_sizes is not None:
+                plans[-1] = {**plans[-1], "size_groups": run_id["size_groups"]}
+            arrays = resume_module.compact(arrays)  # the environments restart, at the new count
+            warnings.warn(f"{out}: from update {len(history)} on with {config.num_envs} environments (was "
+                          f"{saved[0]['run']['train']['num_envs']}): every environment restarts on a fresh level",
+                          stacklevel=2)
         if len(history) % config.updates_per_call:
             raise CheckpointError(f"the training state in {out} holds {len(history)} updates, not a whole number of "
                                   f"this run's chunks")
@@ -282,7 +309,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         if resume_module.is_compact(arrays):  # fresh environments: their levels are no buffer slot's (-2)
             runner = dataclasses.replace(runner, env_level_ids=jax.tree.map(lambda ids: ids * 0 - 2,
                                                                             runner.env_level_ids))
-            if not regroup:  # (which said so already)
+            if not (regroup or resized):  # (which said so already)
                 warnings.warn(f"{out}: a compact training state; every environment restarts on a fresh level",
                               stacklevel=2)
     start = time.perf_counter()
@@ -341,13 +368,23 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         elapsed = elapsed_before + time.perf_counter() - start
         for i in range(config.updates_per_call):
             m = {k: float(v[i]) for k, v in metrics.items()}
-            m["total_steps"] = config.planned_steps
+            m["env_steps"] += steps_offset
+            m["total_steps"] = config.planned_steps + steps_offset
             m["steps_per_second"] = m["env_steps"] / elapsed
             m["elapsed"] = elapsed
             history.append(m)
             if progress is not None:
                 progress(m)
     return write(stopped=stopped, final=True)
+
+
+def batch_offset(plans: list[dict], config: TrainConfig) -> int:
+    """Env steps the run did beyond `config`'s batch size times its update count: 0 unless a resume changed the
+    number of environments (the latest such plan records the env steps done where it did, "env_steps")."""
+    for plan in reversed(plans):
+        if "env_steps" in plan:
+            return int(plan["env_steps"]) - plan["update"] * config.batch_size
+    return 0
 
 
 def replan(meta: dict, done: int, steps: int, settings: dict | None = None) -> list[dict]:
@@ -368,6 +405,7 @@ def replan(meta: dict, done: int, steps: int, settings: dict | None = None) -> l
             previous = plans.pop()
             if not changed and any(k in previous for k in PLANNED):
                 entry.update({k: previous[k] for k in PLANNED if k in previous})
+            entry.update({k: previous[k] for k in ("env_steps", "size_groups") if k in previous})
         plans.append(entry)
     return plans
 

@@ -356,12 +356,19 @@ def profile(run, directory: Path, steps: int) -> dict:
 
 # ---------------------------------------------------------------- stage 3: the general agent's runs
 
-def start_training(runs: list[str], steps: int | None, log_dir: Path) -> list[subprocess.Popen]:
+def train_command(run: str, steps: int | None, extra: str = "") -> list[str]:
+    """`kinetix train --resume RUN` as the GPU session runs it; extra: more of its options, one string (a GPU's
+    batch: `--num-envs 4096 --num-minibatches 32`, the same 8,192 samples per minibatch as the CPU's 512 / 4)."""
+    cmd = [sys.executable, "-m", "kinetix", "train", "--resume", run, "--checkpoint-every", "20"]
+    if steps:  # else the run's own total (a new one would change an annealed learning rate's schedule)
+        cmd += ["--steps", str(steps)]
+    return cmd + shlex.split(extra)
+
+
+def start_training(runs: list[str], steps: int | None, log_dir: Path, extra: str = "") -> list[subprocess.Popen]:
     procs = []
     for run in runs:
-        cmd = [sys.executable, "-m", "kinetix", "train", "--resume", run, "--checkpoint-every", "20"]
-        if steps:  # else the run's own total (a new one would change an annealed learning rate's schedule)
-            cmd += ["--steps", str(steps)]
+        cmd = train_command(run, steps, extra)
         procs.append(subprocess.Popen(cmd, stdout=open(log_dir / f"train-{Path(run).name}.log", "w"),
                                       stderr=subprocess.STDOUT, start_new_session=False))
     return procs
@@ -471,7 +478,7 @@ def main_run(args: argparse.Namespace) -> int:
                                                 *shlex.split(args.tests)]),
                                  env={k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"},
                                  stdout=open(out / "tests.log", "w"), stderr=subprocess.STDOUT)
-    trainers = start_training(args.train, args.train_steps, logs) if args.train else []
+    trainers = start_training(args.train, args.train_steps, logs, args.train_args) if args.train else []
     compiled: dict[str, float] = {}
     for proc in workers:
         try:
@@ -577,6 +584,9 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--train", nargs="*", default=[], help="run directories to resume (kinetix train --resume)")
     run.add_argument("--train-steps", type=int, default=None,
                      help="--steps for the resumed runs (default: each run's own total)")
+    run.add_argument("--train-args", default="",
+                     help="more `kinetix train` options for the resumed runs, one string (e.g. a GPU's batch: "
+                          "'--num-envs 4096 --num-minibatches 32')")
     worker = sub.add_parser("compile", help="(internal) compile jobs into the persistent cache")
     worker.add_argument("--jobs", required=True)
     worker.add_argument("--shared")

@@ -19,7 +19,7 @@ from kinetix.agents import resume
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.curricula import NEG, CurriculumConfig
 from kinetix.agents.ppo import TrainConfig
-from kinetix.agents.train import checkpoint_due, replan, train_agent
+from kinetix.agents.train import batch_offset, checkpoint_due, replan, train_agent
 from kinetix.cli import main
 
 # Tiny and short: 4 chunks of 2 updates of 4 envs x 8 steps on random s levels with PLR (its buffer is filled
@@ -252,6 +252,18 @@ def test_replan_records_where_the_learning_rate_changed():
     assert finer[-1] == {"update": 8, "steps": 100, "update_epochs": 4, "num_minibatches": 8, "lr": 5e-5}
 
 
+def test_the_env_steps_where_the_batch_changed_stay_with_a_plan_made_again_before_any_update():
+    saved = {"arguments": {"steps": 100, "config": {"update_epochs": 4, "num_minibatches": 4, "lr": 3e-4,
+                                                    "num_envs": 4}}}
+    wider = replan(saved, 4, 100, {"num_envs": 8})
+    wider[-1]["env_steps"] = 60  # (train_agent adds it where num_envs changed)
+    again = replan(dict(saved, plans=wider), 4, 200, {"num_envs": 8, "lr": 1e-4})
+    assert again[-1] == {"update": 4, "steps": 200, "update_epochs": 4, "num_minibatches": 4, "lr": 1e-4,
+                         "num_envs": 8, "env_steps": 60}
+    assert batch_offset(again, TrainConfig(num_envs=8, num_steps=4)) == 60 - 4 * 32
+    assert batch_offset(again[:1], TrainConfig(num_envs=8, num_steps=4)) == 0
+
+
 def test_a_learning_rate_that_is_not_positive_and_finite_is_refused():
     for lr in (0.0, -1e-4, float("nan"), float("inf"), True):
         with pytest.raises(ValueError, match="lr must be a positive finite number"):
@@ -299,13 +311,43 @@ def test_resume_with_another_batch_cut_trains_on_and_records_it(reference, tmp_p
     assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 9))
     assert summary["plans"] == [{"update": 0, "steps": STEPS // 2},
                                 {"update": 4, "steps": STEPS, "update_epochs": 2, "num_minibatches": 4,
-                                 "lr": CONFIG.lr}]
+                                 "lr": CONFIG.lr, "num_envs": 4}]
     _, arrays = final_state(out)
     counts = sorted(int(v) for k, v in arrays.items() if k.startswith(".train_state.opt_state") and k.endswith("count"))
     # Adam took 4 x 2 + 4 x 8 steps; the schedule's count was re-based to 4 updates x 8 at the resume
     assert counts == [4 * 1 * 2 + 4 * 2 * 4, 8 * 2 * 4]
-    with pytest.raises(CheckpointError, match="num_envs: 4 in the checkpoint, 8 now"):
-        train_agent("random-s", out, **dict(RUN, config=dataclasses.replace(finer, num_envs=8)), resume=True)
+
+
+def test_resume_with_more_environments_carries_the_learning_and_counts_the_steps(tmp_path):
+    """--resume DIR --num-envs N (a bigger batch where a GPU is lent): parameters, Adam, PLR buffer, key and update
+    index carry over and every environment restarts, at the new count; the env steps go on from where they were,
+    and a later resume from the command line counts them the same."""
+    out = tmp_path / "run"
+    train_agent("random-s", out, **dict(RUN, steps=STEPS // 2), save_state=True)  # 4 updates of 4 x 8: 128 steps
+    _, saved, _ = resume.load_latest(out)
+    wider = dataclasses.replace(CONFIG, num_envs=8)
+    with pytest.warns(UserWarning, match=r"from update 4 on with 8 environments \(was 4\)"):
+        restored = train_agent("random-s", out, **dict(RUN, config=wider), resume=True,
+                               should_stop=lambda: True)  # stops before its first chunk: writes what it restored
+    assert len(restored["metrics"]) == 4
+    _, arrays, _ = resume.load_latest(out)
+    carried = [p for p in saved if p.startswith((".train_state", ".key", ".update_index", ".curriculum"))]
+    assert len(carried) > 10 and all(np.array_equal(arrays[p], saved[p]) for p in carried)
+    scores = next(v for k, v in arrays.items() if k.startswith(".curriculum") and "scores" in k)
+    assert (scores > NEG / 2).any()  # the PLR buffer came along
+    assert arrays[".env_state.level.sim.bodies.active"].shape[0] == 8
+    assert (arrays[".env_level_ids"] == -2).all()  # fresh levels, no buffer slot's
+
+    summary = train_agent("random-s", out, **dict(RUN, config=wider), resume=True)  # 128 more steps: 2 updates of 64
+    assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 7))
+    assert [m["env_steps"] for m in summary["metrics"]] == [32, 64, 96, 128, 192, 256]
+    assert summary["steps"] == STEPS and summary["metrics"][-1]["total_steps"] == STEPS
+    assert summary["plans"][-1] == {"update": 4, "steps": STEPS, "update_epochs": 1, "num_minibatches": 2,
+                                    "lr": CONFIG.lr, "num_envs": 8, "env_steps": 128}
+    assert main(["train", "--resume", str(out), "--steps", str(2 * STEPS)]) == 0  # 8 envs from the saved run
+    longer = json.loads((out / "metrics.json").read_text())
+    assert [m["env_steps"] for m in longer["metrics"][6:]] == [320, 384, 448, 512]
+    assert longer["config"]["num_envs"] == 8 and longer["steps"] == 2 * STEPS
 
 
 
@@ -325,7 +367,7 @@ def test_resume_with_another_learning_rate_trains_at_it_and_records_it(reference
     summary = train_agent("random-s", out, **dict(RUN, config=slow), resume=True)
     assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 9))
     assert summary["plans"][-1] == {"update": 4, "steps": STEPS, "update_epochs": 1, "num_minibatches": 2,
-                                    "lr": 1e-12}
+                                    "lr": 1e-12, "num_envs": 4}
     _, arrays = final_state(out)
     assert moved(arrays) < 1e-9  # Adam's steps are about the rate in size: 8 of them at 1e-12
     with pytest.raises(CheckpointError, match="anneal_lr: True in the checkpoint, False now"):
@@ -452,3 +494,14 @@ def test_a_run_in_size_groups_keeps_its_groups_on_other_devices(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     longer = json.loads((tmp_path / "metrics.json").read_text())
     assert longer["devices"] == 2 and len(longer["metrics"]) == 4 and longer["size_groups"] == first["size_groups"]
+    # with another number of environments (a GPU's batch) the groups are cut afresh; the learning carries over
+    _, before, _ = resume.load_latest(tmp_path)
+    with pytest.warns(UserWarning, match=r"from update 4 on with 16 environments \(was 8\)"):
+        wider = train_agent("random-all", tmp_path, steps=256, config=dataclasses.replace(config, num_envs=16),
+                            resume=True, shard=False, should_stop=lambda: True)
+    assert wider["size_groups"] == {"s": 5, "m": 5, "l": 6}
+    assert wider["plans"][-1]["size_groups"] == wider["size_groups"] and wider["plans"][-1]["env_steps"] == 256
+    _, after, _ = resume.load_latest(tmp_path)
+    carried = [path for path in before if path.startswith((".train_state", ".key", ".update_index"))]
+    assert len(carried) > 10 and all(np.array_equal(after[path], before[path]) for path in carried)
+    assert after[".env_state[2].level.sim.bodies.active"].shape[0] == 6

@@ -46,7 +46,7 @@ fi
   "$PY" -c "import jax, flax, optax, numpy; print('jax', jax.__version__, jax.devices(), 'flax', flax.__version__, 'optax', optax.__version__, 'numpy', numpy.__version__)"
   JAX_PLATFORMS=$PLATFORMS "$PY" -m kinetix.bench.gpu run --out "$OUT" --logs "$LOGS" ${LEVELS:+--shared "$LEVELS"} \
     "${QUICK[@]}" --workers "$WORKERS" --budget "${BUDGET:-470}" --tests "$TEST_ARGS" --train "${RUNS[@]}" \
-    --train-args "$TRAIN_ARGS" "$@"
+    --train-args="$TRAIN_ARGS" "$@"
   if (( ${#RUNS[@]} )); then
     for run in "${RUNS[@]}"; do "$PY" -m kinetix.agents.resume compact "$run" || echo "compact $run failed"; done
     tar czf "$OUT/runs.tar.gz" "${RUNS[@]}"

@@ -204,10 +204,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
             plans[-1] = {**plans[-1], "env_steps": history[-1]["env_steps"] if history else 0}
         steps_offset = batch_offset(plans, config)
         if steps_offset:  # the plans count env steps; the loop and the schedule count updates of this batch
-            if steps - steps_offset < 1:
-                raise CheckpointError(f"the run in {out} has trained {history[-1]['env_steps']:.0f} steps already; "
-                                      f"--steps {steps} would end before that (give at least that many to extend it)")
-            config = dataclasses.replace(config, total_timesteps=steps - steps_offset)
+            # (at least one: a length below what is done is refused below, as for any resume)
+            config = dataclasses.replace(config, total_timesteps=max(1, steps - steps_offset))
     saved_groups = saved is not None and bool(saved[0]["run"].get("size_groups"))
     if size_groups is None:
         size_groups = saved_groups if saved is not None else level == "random-all" and observation != "flat"

@@ -42,7 +42,7 @@ import numpy as np
 
 from jax2d.collide import Manifold, collide_circles, collide_polygon_circle, collide_polygons
 from jax2d.math2d import take_rows
-from jax2d.narrow_phase import joint_connected, joint_labels, over_pairs_and_batch, pair_filter, step_reach
+from jax2d.narrow_phase import empty_rows, joint_connected, joint_labels, pair_filter, pair_inputs, step_reach
 from jax2d.pairs import CIRCLE_CIRCLE, CIRCLE_POLY, PADDING, POLY_CIRCLE, POLY_POLY, ContactLayout, contact_layout
 from jax2d.state import SimParams
 
@@ -212,10 +212,7 @@ def collide_candidates(cand: Candidates, b, speculative, total: int, reach=None)
     margin is the speculative distance plus both bodies' reach (narrow_phase.narrow_phase; reach None: zero)."""
     P = b.vertices.shape[0]
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
-    batch = pos.shape[2:]
-    mapped = functools.partial(over_pairs_and_batch, batch=batch)
-    spec = jnp.broadcast_to(jnp.asarray(speculative, jnp.float32), batch)
-    reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
+    batch, mapped, spec, reach = pair_inputs(b, speculative, reach)
 
     def margin(i, j):
         return spec + take_rows(reach, i) + take_rows(reach, j)
@@ -235,11 +232,7 @@ def collide_candidates(cand: Candidates, b, speculative, total: int, reach=None)
             parts.append(mapped(collide_circles, 4)(t(pos), take_rows(rad, i - P), take_rows(pos, j),
                                                     take_rows(rad, j - P), margin(i, j)))
     n = sum(x[1] for x in cand.lists)
-    empty = Manifold(jnp.zeros((total - n, 2)).at[:, 1].set(1.0), jnp.zeros((total - n, 2, 2)),
-                     jnp.zeros((total - n, 2)), jnp.full((total - n, 2), -1, jnp.int32),
-                     jnp.zeros((total - n, 2), bool))
-    empty = jax.tree.map(lambda x: jnp.broadcast_to(x.reshape(x.shape + (1,) * len(batch)), x.shape + batch), empty)
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty_rows(total - n, batch))
 
 
 class Found(NamedTuple):

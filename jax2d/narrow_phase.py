@@ -54,10 +54,7 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative, reach=None, toke
     """
     P = b.vertices.shape[0]
     pos, ang, verts, nv, rad = b.position, b.angle, b.vertices, b.n_vertices, b.radius
-    batch = pos.shape[2:]
-    mapped = functools.partial(over_pairs_and_batch, batch=batch)
-    spec = jnp.broadcast_to(jnp.asarray(speculative, jnp.float32), batch)
-    reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
+    batch, mapped, spec, reach = pair_inputs(b, speculative, reach)
 
     def margin(i, j):
         return spec + reach[i] + reach[j]
@@ -86,15 +83,30 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative, reach=None, toke
     if len(i):
         parts.append(mapped(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P], margin(i, j)))
     S = layout.num_slots
-    # The row padding slots take: no point, normal (0, 1).
-    empty = Manifold(jnp.array([[0.0, 1.0]]), jnp.zeros((1, 2, 2)), jnp.zeros((1, 2)),
-                     jnp.full((1, 2), -1, jnp.int32), jnp.zeros((1, 2), bool))
-    empty = jax.tree.map(lambda x: jnp.broadcast_to(x.reshape(x.shape + (1,) * len(batch)), x.shape + batch), empty)
+    empty = empty_rows(1, batch)  # the row padding slots take
     if not parts:
         return jax.tree.map(lambda x: jnp.repeat(x, S, axis=0), empty)
     rows = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
     # Every slot picks its row with a constant index (padding slots take the empty row).
     return jax.tree.map(lambda x: x[layout.gather], rows)
+
+
+def pair_inputs(b: Bodies, speculative, reach) -> tuple[tuple, object, jax.Array, jax.Array]:
+    """What both narrow phases (this one and broad_phase.collide_candidates) start from, for batch-last bodies:
+    the batch shape, the collide mapper over pairs and batch (over_pairs_and_batch), the speculative distance
+    per scene and each body's reach (zero where reach is None)."""
+    batch = b.position.shape[2:]
+    mapped = functools.partial(over_pairs_and_batch, batch=batch)
+    spec = jnp.broadcast_to(jnp.asarray(speculative, jnp.float32), batch)
+    reach = jnp.zeros((b.active.shape[0],) + batch, jnp.float32) if reach is None else reach
+    return batch, mapped, spec, reach
+
+
+def empty_rows(n: int, batch: tuple) -> Manifold:
+    """n manifold rows with no point and normal (0, 1), batch last: what padding slots and rows hold."""
+    empty = Manifold(jnp.zeros((n, 2)).at[:, 1].set(1.0), jnp.zeros((n, 2, 2)), jnp.zeros((n, 2)),
+                     jnp.full((n, 2), -1, jnp.int32), jnp.zeros((n, 2), bool))
+    return jax.tree.map(lambda x: jnp.broadcast_to(x.reshape(x.shape + (1,) * len(batch)), x.shape + batch), empty)
 
 
 def over_pairs_and_batch(collide, n: int, batch: tuple):

@@ -83,9 +83,9 @@ def narrow_phase(layout: ContactLayout, b: Bodies, speculative, reach=None, toke
     if len(i):
         parts.append(mapped(collide_circles, 4)(pos[i], rad[i - P], pos[j], rad[j - P], margin(i, j)))
     S = layout.num_slots
-    empty = empty_rows(1, batch)  # the row padding slots take
     if not parts:
-        return jax.tree.map(lambda x: jnp.repeat(x, S, axis=0), empty)
+        return empty_rows(S, batch)
+    empty = empty_rows(1, batch)  # the row padding slots take
     rows = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts, empty)
     # Every slot picks its row with a constant index (padding slots take the empty row).
     return jax.tree.map(lambda x: x[layout.gather], rows)

@@ -344,6 +344,21 @@ def peak_rss_mb() -> float:
     return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
 
 
+def machine_summary(what: str, **extra) -> dict:
+    """The closing result of every bench table: peak memory, device count and the backend, plus `extra`."""
+    import jax
+
+    from kinetix.devices import backend_report
+
+    return {"what": what, "peak_rss_mb": peak_rss_mb(), "devices": jax.device_count(), **backend_report(), **extra}
+
+
+def machine_row(result: dict) -> str:
+    """The readable line for a machine_summary result."""
+    return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}: "
+            f"{result.get('device_kind', '?')}, {result['devices']} devices)")
+
+
 def benchmark(
     workloads: list[Workload],
     batches: list[int],
@@ -359,10 +374,6 @@ def benchmark(
     Each result is passed to `report` as soon as it is measured and all are returned in order. With
     cold=False compilations may come from the caches (quick tests), so compile_s means little.
     """
-    import jax
-
-    from kinetix.devices import backend_report
-
     results = []
 
     def record(result: dict) -> None:
@@ -375,13 +386,7 @@ def benchmark(
                 record(measure_rollout(workload, batch, steps, cold))
             if loops:
                 record(measure_python_loop(workload, loop_calls, cold))
-    record({
-        "what": "engine",
-        "peak_rss_mb": peak_rss_mb(),
-        "devices": jax.device_count(),
-        **backend_report(),
-        "compile_cache": "disabled" if cold else "allowed",
-    })
+    record(machine_summary("engine", compile_cache="disabled" if cold else "allowed"))
     return results
 
 
@@ -393,8 +398,7 @@ _HEADER = f"{'size':<6}{'batch':>7}  {'mode':<12}{'steps/s':>12}{'ms/call':>10}{
 def table_row(result: dict) -> str:
     """One line of the readable table for a result of `benchmark`."""
     if "peak_rss_mb" in result:
-        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}: "
-                f"{result.get('device_kind', '?')}, {result['devices']} devices)")
+        return machine_row(result)
     warning = "" if result["finite"] else "  NON-FINITE STATE"
     if result.get("mode") == "python_loop":
         cells = f"{'python loop':<12}{'':>12}{result['latency_ms']:>10.3f}"

@@ -36,8 +36,9 @@ from kinetix.bench.engine import (
     all_finite,
     backend_flag,
     cold_compiles,
+    machine_row,
+    machine_summary,
     measured_on,
-    peak_rss_mb,
     run_with_interactive_loops,
     timed_runs,
 )
@@ -277,10 +278,6 @@ def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: 
 
     Results go to `report` as they are measured and are returned in order, ending with a peak-RSS line.
     """
-    import jax
-
-    from kinetix.devices import backend_report
-
     results = []
 
     def record(result: dict) -> None:
@@ -295,8 +292,7 @@ def benchmark(level_files: list, batches: list[int], steps: int, *, loop_calls: 
                 record(measure_python_loop(level_file, name, loop_calls, cold))
             for resolution in pixel_resolutions:
                 record(measure_renderer(level_file, name, resolution, cold=cold))
-    record({"what": "env", "peak_rss_mb": peak_rss_mb(), "devices": jax.device_count(), **backend_report(),
-            "compile_cache": "disabled" if cold else "allowed"})
+    record(machine_summary("env", compile_cache="disabled" if cold else "allowed"))
     return results
 
 
@@ -308,8 +304,7 @@ _HEADER = f"{'size':<5}{'level':<24}{'batch':>6}  {'mode':<12}{'steps/s':>12}{'m
 def table_row(result: dict) -> str:
     """One line of the readable table for a result of `benchmark`."""
     if "peak_rss_mb" in result:
-        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}: "
-                f"{result.get('device_kind', '?')}, {result['devices']} devices)")
+        return machine_row(result)
     head = f"{result['size']:<5}{result['level'][:23]:<24}"
     if result.get("mode") == "pixels":
         return (f"{head}{'':>6}  {'pixels ' + str(result['resolution']):<12}{'':>12}{result['ms_per_frame']:>10.3f}"

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from kinetix.bench.engine import SEED, measured_on, peak_rss_mb
+from kinetix.bench.engine import SEED, machine_row, machine_summary, measured_on
 from kinetix.bench.env import compile_rollout, load_bench_levels
 
 ACTION_POOL = 16  # distinct action batches cycled through (drawing them is not what is measured)
@@ -96,17 +96,13 @@ def compare(path: Path, batch: int, steps: int, observation: str = "entity", rep
 def benchmark(paths: list[Path], batches: list[int], steps: int, observation: str = "entity",
               report=lambda result: None) -> list[dict]:
     """The JAX env and the gym vector env at every batch, for every level, as result dicts (also sent to `report`)."""
-    import jax
-
-    from kinetix.devices import backend_report
-
     results = []
     for path in paths:
         for batch in batches:
             for result in compare(path, batch, steps, observation):
                 results.append(result)
                 report(result)
-    final = {"what": "gym", "peak_rss_mb": peak_rss_mb(), "devices": jax.device_count(), **backend_report()}
+    final = machine_summary("gym")
     results.append(final)
     report(final)
     return results
@@ -114,8 +110,7 @@ def benchmark(paths: list[Path], batches: list[int], steps: int, observation: st
 
 def table_row(result: dict) -> str:
     if "peak_rss_mb" in result:
-        return (f"peak RSS {result['peak_rss_mb']:.0f} MB (jax {result['jax']}, {result['backend']}: "
-                f"{result.get('device_kind', '?')}, {result['devices']} devices)")
+        return machine_row(result)
     head = f"{result['size']:<5}{result['level'][:23]:<24}{result['batch']:>6}  "
     if result["what"] == "gym_vs_jax":
         return f"{head}{'gym / jax':<16}{result['ratio']:>12.2f}"

@@ -81,6 +81,19 @@ def test_free_fall_matches_symplectic_euler_and_half_g_t_squared():
     assert abs(rel) < 0.02
 
 
+def test_a_scene_with_no_contact_pair_falls_freely():
+    """One body and nothing to touch: the narrow phase has no pair to evaluate and returns only empty rows."""
+    capacity = jax2d.Capacity(polygons=1, circles=0, joints=0, thrusters=0, max_vertices=4)
+    assert not any(len(slots) for slots in contact_layout(1, 0).by_kind.values())
+    state, body = scene.add_rectangle(jax2d.empty_state(capacity), (0.0, 0.0), 1.0, 1.0)
+    n_steps = scenes.CHUNK
+    _, rec = rollout(state, PARAMS, n_steps)
+    n = SUBSTEPS * n_steps
+    h = DT / SUBSTEPS
+    np.testing.assert_allclose(-rec["position"][-1, body, 1], G * h * h * n * (n + 1) / 2, rtol=1e-5)
+    assert np.all(rec["angular_velocity"][:, body] == 0)
+
+
 # ---------------------------------------------------------------- 2. pendulum
 
 

@@ -3,6 +3,8 @@ preview of a level that a page carries until its session's first frame arrives."
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from server.play import draw
@@ -11,6 +13,9 @@ MAX_PIXELS = 1280 * 800  # larger canvases are rendered smaller at the same aspe
 JPEG_QUALITY = 85
 # The preview is square, as the world is: the page letterboxes it into its canvas as frames are (static/frames.js).
 PREVIEW_PIXELS = 640
+# How long a new session waits for its first frame to leave viser's buffer before it builds the panel
+# (wait_until_sent): a few milliseconds on a quiet server; the bound only matters if the tab never reads.
+FIRST_FRAME_WAIT_S = 2.0
 
 
 def ack_html(seq: int) -> str:
@@ -34,6 +39,29 @@ def set_background_jpeg(client, data: bytes, frame: np.ndarray) -> None:
         client.scene.set_background_image(frame, format="jpeg", jpeg_quality=JPEG_QUALITY)
         return
     queue(BackgroundImageMessage(format="jpeg", rgb_data=data, depth_data=None))
+
+
+def wait_until_sent(client, timeout: float) -> bool:
+    """Wait until viser has taken every message queued so far for `client` off its buffer and onto the socket, at
+    most `timeout` seconds; True if it has.
+
+    Why: viser keeps only the newest background image in a client's buffer. On a loaded server a tab's session can
+    queue its first frame, its panel and a second frame before viser's sender for that tab first runs; the first
+    frame is then dropped and the second goes out after the panel, so the canvas stays blank while the browser
+    builds the panel (a second or more; CI of stop 61). Waiting for the first frame to leave costs a few
+    milliseconds on a quiet server. viser 1.1.1 (pinned) has no public call for this: if its internals differ,
+    this returns False at once (the old behaviour)."""
+    try:
+        buffer = client._websock_connection.get_message_buffer()
+        last, cursors = buffer.message_counter - 1, buffer.generator_cursors
+    except AttributeError:
+        return False
+    deadline = time.monotonic() + timeout
+    while cursors.get(client.client_id, -1) < last:
+        if buffer.done or time.monotonic() >= deadline:
+            return False
+        time.sleep(0.005)
+    return True
 
 
 def canvas_view(client) -> draw.View:

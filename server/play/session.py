@@ -26,7 +26,14 @@ import numpy as np
 from server.play import draw
 from server.play.buttons import PlayButtons
 from server.play.editing import PointerInput, default_editor_factory
-from server.play.frames import JPEG_QUALITY, ack_html, canvas_view, set_background_jpeg
+from server.play.frames import (
+    FIRST_FRAME_WAIT_S,
+    JPEG_QUALITY,
+    ack_html,
+    canvas_view,
+    set_background_jpeg,
+    wait_until_sent,
+)
 from server.play.hooks import Controller, PlayListener, episode_end
 from server.play.loop import PlayLoop
 from server.play.scheduler import StepPlan
@@ -106,6 +113,7 @@ class Session(PlayLoop):
         # The level first, then the panel: the page draws this frame before viser builds the panel, which keeps
         # the browser's main thread busy for a second or more (the canvas stayed blank that long, issue 37).
         self._push_frame()
+        wait_until_sent(self.client, FIRST_FRAME_WAIT_S)  # else a later frame can replace it, behind the panel
         self._build_gui()
         self._pointer = PointerInput(self)
         self.refresh(force=True)

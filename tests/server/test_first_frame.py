@@ -5,6 +5,7 @@ The browser side (static/frames.js) is tests/e2e/test_agent_in_browser.py's."""
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import io
 import re
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 from fake_editor import falling_win_spec
 from PIL import Image
-from viser_client import KeysSocket, ViserTestClient
+from viser_client import KeysSocket, ViserTestClient, _is_frame
 
 from kinetix.formats import build
 from kinetix.levels import to_document
@@ -97,4 +98,38 @@ def test_a_tab_without_a_query_on_its_socket_still_opens_its_address_at_the_hell
     finally:
         if keys is not None:
             keys.close()
+        client.close()
+
+
+def test_the_first_frame_goes_out_before_the_panel_when_visers_sender_starts_late(app, level_id, monkeypatch):
+    """On a loaded server viser's sender for a new tab can start only after its session has queued the first frame,
+    the panel and a second frame; viser keeps only the newest background image, so without waiting
+    (server.play.frames.wait_until_sent) the first frame was dropped and the second came after the panel (CI of
+    stop 61). Here the sender of every new tab's own buffer starts 0.5 s late."""
+    from viser.infra._async_message_buffer import AsyncMessageBuffer
+
+    window_generator = AsyncMessageBuffer.window_generator
+
+    def late(self, client_id, backlog_done_message=None):
+        windows = window_generator(self, client_id, backlog_done_message)
+        if self.persistent_messages:  # the broadcast buffer: as it is
+            return windows
+
+        async def delayed():
+            await asyncio.sleep(0.5)
+            async for window in windows:
+                yield window
+
+        return delayed()
+
+    monkeypatch.setattr(AsyncMessageBuffer, "window_generator", late)
+    client = ViserTestClient(app.port, path=f"/?level={level_id}&mode=play")
+    try:
+        client.wait_frame(timeout=30)
+        client.wait_for(lambda m: m["type"] == "GuiButtonMessage", timeout=30)
+        with client._cond:
+            kinds = ["frame" if _is_frame(m) else m["type"] for m in client.messages]
+        assert kinds.index("frame") < kinds.index("GuiButtonMessage"), kinds
+        assert _ball_pixels(client.frames()[0]) > 100, "the first frame shows the level"
+    finally:
         client.close()

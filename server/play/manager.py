@@ -68,6 +68,13 @@ class SessionManager:
         progress = None if self.warmup is None else self.warmup.progress()
         return None if progress is None else f"{PREPARING}: {progress}"
 
+    @property
+    def starting(self) -> int:
+        """Sessions being built now: their tabs connected, they are not in `sessions` yet (or never will be, if the
+        tab left meanwhile)."""
+        with self._lock:
+            return self._starting
+
     def _connect(self, client) -> None:
         with self._lock:  # reserve the slot now: sessions take a moment to build and connects can overlap
             full = len(self.sessions) + self._starting >= self.max_sessions

@@ -76,8 +76,7 @@ def _fps(client, session, seconds: float = MEASURE_S) -> float:
 
 
 def _notifications(client) -> list[dict]:
-    with client._cond:
-        return [m["props"] for m in client.messages if m["type"] == "NotificationShowMessage"]
+    return [m["props"] for m in client.matching(lambda m: m["type"] == "NotificationShowMessage")]
 
 
 def test_a_failing_play_does_not_slow_the_other_tab(app, make_client, poisoned_stepper, caplog):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from fake_editor import FakeEditor, falling_win_spec
 from PIL import Image
-from viser_client import KeysSocket, _is_frame, session_nonce
+from viser_client import KeysSocket, is_frame, session_nonce
 
 from server.play.session import Controller, PlayListener
 from tests.server.conftest import running_app
@@ -82,7 +82,7 @@ def test_frames_are_rendered_at_the_canvas_size(app, make_client):
     client.send_camera(300, 500)
     # a frame drawn before the resize reached the session may still arrive first (under load): the first frame of
     # another size must be the new canvas's
-    resized = client.wait_for(lambda m: _is_frame(m) and _image(m["rgb_data"]).shape != (480, 640, 3), 10.0, start)
+    resized = client.wait_for(lambda m: is_frame(m) and _image(m["rgb_data"]).shape != (480, 640, 3), 10.0, start)
     assert _image(resized["rgb_data"]).shape == (500, 300, 3)
     # Letterboxed: the square world fills the width of a tall canvas; bands above and below keep its aspect.
     tall = _image(client.frames()[-1])

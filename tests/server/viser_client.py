@@ -40,7 +40,8 @@ def decode_window(data: bytes) -> list[dict]:
     return [_resolve(m, buffers) for m in inner["messages"]]
 
 
-def _is_frame(message: dict) -> bool:
+def is_frame(message: dict) -> bool:
+    """A background image that carries pixels (a level frame)."""
     return message["type"] == "BackgroundImageMessage" and message.get("rgb_data") is not None
 
 
@@ -105,12 +106,22 @@ class ViserTestClient:
         with self._cond:
             return len(self.messages)
 
+    def matching(self, predicate: Callable[[dict], bool]) -> list[dict]:
+        """Every message received so far that matches `predicate`, in arrival order."""
+        with self._cond:
+            return [m for m in self.messages if predicate(m)]
+
+    def kinds(self) -> list[str]:
+        """Each message's type in arrival order, "frame" for a level frame (is_frame)."""
+        with self._cond:
+            return ["frame" if is_frame(m) else m["type"] for m in self.messages]
+
     def frames(self, start: int = 0) -> list[bytes]:
         with self._cond:
-            return [m["rgb_data"] for m in self.messages[start:] if _is_frame(m)]
+            return [m["rgb_data"] for m in self.messages[start:] if is_frame(m)]
 
     def wait_frame(self, start: int = 0, timeout: float = 10.0) -> bytes:
-        return self.wait_for(_is_frame, timeout, start)["rgb_data"]
+        return self.wait_for(is_frame, timeout, start)["rgb_data"]
 
     def gui(self) -> dict[str, dict]:
         """Current GUI elements by uuid (creation messages with later updates applied)."""

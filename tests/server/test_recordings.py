@@ -46,10 +46,11 @@ def _download(client, start: int = 0, timeout: float = 30.0) -> tuple[str, bytes
     """The file of the first download the server started after message `start`, assembled from its parts."""
     head = client.wait_for(lambda m: m["type"] == "FileTransferStartDownload", timeout, start)
     uuid, parts = head["transfer_uuid"], head["part_count"]
-    _wait(lambda: sum(1 for m in client.messages if m["type"] == "FileTransferPart"
-                      and m["transfer_uuid"] == uuid) == parts, timeout)
-    chunks = sorted((m["part_index"], m["content"]) for m in client.messages
-                    if m["type"] == "FileTransferPart" and m["transfer_uuid"] == uuid)
+    def is_part(m: dict) -> bool:
+        return m["type"] == "FileTransferPart" and m["transfer_uuid"] == uuid
+
+    _wait(lambda: len(client.matching(is_part)) == parts, timeout)
+    chunks = sorted((m["part_index"], m["content"]) for m in client.matching(is_part))
     return head["filename"], b"".join(c for _, c in chunks)
 
 
@@ -412,7 +413,7 @@ def test_a_replay_link_replays_the_levels_best_run(app, make_client):
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce, query=f"?level={other}&mode=replay")
     try:
-        _wait(lambda: "No best run yet" in json.dumps(client.messages, default=str))
+        _wait(lambda: "No best run yet" in json.dumps(client.received(), default=str))
         assert session.mode == "edit"
     finally:
         keys.close()

@@ -108,7 +108,7 @@ def test_unknown_level_link_leaves_the_tab_editing_its_level(app, make_client):
     before = session.editor.export("ours")
     keys = KeysSocket(app.port, nonce, query="?level=doesnotexist&mode=play")
     try:
-        _wait(lambda: "Cannot open that level" in json.dumps(client.received(), default=str))
+        client.wait_for(lambda m: "Cannot open that level" in json.dumps(m, default=str), 20.0)
         assert session.gallery_id is None and session.mode == "edit"
         assert session.editor.export("ours") == before
     finally:

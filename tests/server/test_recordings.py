@@ -413,7 +413,7 @@ def test_a_replay_link_replays_the_levels_best_run(app, make_client):
     session, nonce = _session(app, client)
     keys = KeysSocket(app.port, nonce, query=f"?level={other}&mode=replay")
     try:
-        _wait(lambda: "No best run yet" in json.dumps(client.received(), default=str))
+        client.wait_for(lambda m: "No best run yet" in json.dumps(m, default=str), 30.0)
         assert session.mode == "edit"
     finally:
         keys.close()

@@ -111,11 +111,6 @@ class ViserTestClient:
         with self._cond:
             return [m for m in self.messages if predicate(m)]
 
-    def received(self) -> list[dict]:
-        """A copy of every message received so far, in arrival order."""
-        with self._cond:
-            return list(self.messages)
-
     def kinds(self) -> list[str]:
         """Each message's type in arrival order, "frame" for a level frame (is_frame)."""
         with self._cond:

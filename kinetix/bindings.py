@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kinetix.level import Level
+from kinetix.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
 
 
 def expand_actions(level: Level, motor_binding_values: jax.Array,
@@ -29,6 +29,19 @@ def expand_actions(level: Level, motor_binding_values: jax.Array,
     motor = jnp.where(level.motor_auto, 1.0, motor_values[level.motor_bindings])
     thrust = thruster_values[level.thruster_bindings]
     return jnp.where(joints.active, motor, 0.0), jnp.where(thrusters.active, thrust, 0.0)
+
+
+def bound_bindings(level: Level) -> jax.Array:
+    """(NUM_MOTOR_BINDINGS + NUM_THRUSTER_BINDINGS,) bool: which bindings the level's actions reach.
+
+    A motor binding counts when an active, motor-on joint that is not motor_auto listens to it (an auto joint
+    ignores the action); a thruster binding when an active thruster does. Pure jnp: jit and vmap freely.
+    """
+    joints, thrusters = level.sim.joints, level.sim.thrusters
+    driven = joints.active & joints.motor_on & ~level.motor_auto
+    motors = jnp.arange(NUM_MOTOR_BINDINGS)[:, None] == level.motor_bindings[None, :]
+    thrust = jnp.arange(NUM_THRUSTER_BINDINGS)[:, None] == level.thruster_bindings[None, :]
+    return jnp.concatenate([jnp.any(motors & driven[None, :], -1), jnp.any(thrust & thrusters.active[None, :], -1)])
 
 
 HUB_TOLERANCE = 1e-3  # metres: anchors this close to their bodies' centres count as equally centred
@@ -61,8 +74,6 @@ def clockwise_values(level: Level) -> np.ndarray:
     joints that disagree follows the majority (ties: its first joint). Bindings with no keyboard-driven motor
     (none, or only motor_auto joints) get -1. Host numpy, for one (unbatched) level.
     """
-    from kinetix.level import NUM_MOTOR_BINDINGS
-
     b, j = level.sim.bodies, level.sim.joints
     (inv_mass, n_poly, a_idx, b_idx, anchor_a, anchor_b, active, fixed, motor_on, speed, bindings, auto) = (
         np.asarray(x) for x in jax.device_get((b.inv_mass, b.vertices.shape[0], j.a, j.b, j.anchor_a, j.anchor_b,

@@ -60,16 +60,23 @@ def log_prob(outputs: jax.Array, action: jax.Array, action_type: str) -> jax.Arr
     return jnp.sum(-0.5 * z ** 2 - log_std - 0.5 * jnp.log(2 * jnp.pi), -1)
 
 
+def _categorical_entropy(logits: jax.Array) -> jax.Array:
+    logp = jax.nn.log_softmax(logits)
+    return -jnp.sum(jnp.exp(logp) * logp, -1)
+
+
+def binding_entropies(outputs: jax.Array) -> jax.Array:
+    """(..., 6): the entropy of each binding's categorical, from multi_discrete outputs (..., 16)."""
+    parts = jnp.split(outputs, _splits("multi_discrete"), axis=-1)
+    return jnp.stack([_categorical_entropy(p) for p in parts], -1)
+
+
 def entropy(outputs: jax.Array, action_type: str) -> jax.Array:
     action_type = check_action_type(action_type)
-
-    def categorical(p):
-        logp = jax.nn.log_softmax(p)
-        return -jnp.sum(jnp.exp(logp) * logp, -1)
-
     if action_type == "multi_discrete":
-        return sum(categorical(p) for p in jnp.split(outputs, _splits(action_type), axis=-1))
+        parts = jnp.split(outputs, _splits(action_type), axis=-1)
+        return sum(_categorical_entropy(p) for p in parts)  # in this order, as training always summed it
     if action_type == "discrete":
-        return categorical(outputs)
+        return _categorical_entropy(outputs)
     log_std = outputs[..., NUM_BINDINGS:]
     return jnp.sum(log_std + 0.5 * jnp.log(2 * jnp.pi * jnp.e), -1)

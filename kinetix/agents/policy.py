@@ -73,18 +73,12 @@ def required_observation(spec: str) -> str | None:
     return None if isinstance(where, str) else checkpoint_module.load(where).env["observation"]
 
 
-def load_policy(spec: str, env: KinetixEnv, deterministic: bool = False) -> Policy:
+def load_network(where: str | os.PathLike, env: KinetixEnv, spec: str | None = None) -> tuple[ActorCritic, object]:
+    """(network, parameters) of the checkpoint directory `where`, checked against `env`'s observation and action
+    space. `network.apply({"params": params}, obs_batch)` gives (head outputs, values); kinetix.agents.distributions
+    reads the outputs. `spec`: how the user named the agent, for error messages."""
+    spec = str(where) if spec is None else spec
     action_type = env.config.action
-    where = resolve(spec)
-    zero = jnp.asarray(0.0, jnp.float32)
-    if where == "noop":
-        action = actions.noop_action(action_type)
-        return Policy("noop", action_type, None, lambda params, key, obs: (action, zero),
-                      signature=("noop", action_type))
-    if where == "random":
-        return Policy("random", action_type, None,
-                      lambda params, key, obs: (actions.sample_random_action(key, action_type), zero),
-                      signature=("random", action_type))
     ckpt = checkpoint_module.load(where)
     need = ckpt.env
     if need["observation"] != env.config.observation:
@@ -100,7 +94,23 @@ def load_policy(spec: str, env: KinetixEnv, deterministic: bool = False) -> Poli
         raise CheckpointError(f"agent {spec} needs pixel_resolution {need['pixel_resolution']}")
     tc = ckpt.train_config
     network = ActorCritic(network=tc.network, action=action_type, width=tc.width, hidden=tc.hidden)
-    params = jax.tree.map(jnp.asarray, ckpt.params)
+    return network, jax.tree.map(jnp.asarray, ckpt.params)
+
+
+def load_policy(spec: str, env: KinetixEnv, deterministic: bool = False) -> Policy:
+    action_type = env.config.action
+    where = resolve(spec)
+    zero = jnp.asarray(0.0, jnp.float32)
+    if where == "noop":
+        action = actions.noop_action(action_type)
+        return Policy("noop", action_type, None, lambda params, key, obs: (action, zero),
+                      signature=("noop", action_type))
+    if where == "random":
+        return Policy("random", action_type, None,
+                      lambda params, key, obs: (actions.sample_random_action(key, action_type), zero),
+                      signature=("random", action_type))
+    network, params = load_network(where, env, spec)
+    observation = env.config.observation  # load_network checked it is the checkpoint's
 
     def apply(net_params, key, obs):
         batched = jax.tree.map(lambda x: jnp.asarray(x)[None], obs)
@@ -110,5 +120,5 @@ def load_policy(spec: str, env: KinetixEnv, deterministic: bool = False) -> Poli
         return action[0], value[0]
 
     name = "general" if spec == "general" else str(where)
-    signature = ("network", tc.network, tc.width, tc.hidden, action_type, need["observation"], deterministic)
-    return Policy(name, action_type, need["observation"], apply, params, signature)
+    signature = ("network", network.network, network.width, network.hidden, action_type, observation, deterministic)
+    return Policy(name, action_type, observation, apply, params, signature)

@@ -250,6 +250,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=float, default=None,
                         help="Adam learning rate (default: 3e-4); with --resume, the rate from then on (annealed: "
                              "the new rate's line at the same update)")
+    parser.add_argument("--ent-coef", type=float, default=None,
+                        help="weight of the entropy bonus in the PPO loss (default: 0.01); with --resume, the weight "
+                             "from then on")
     parser.add_argument("--constant-lr", action="store_const", const=True, default=None,
                         help="keep the learning rate constant instead of annealing it linearly to 0 over the run "
                              "(a run extended with --resume --steps then equals one planned that long)")
@@ -280,7 +283,7 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", metavar="DIR",
                         help="continue the run in DIR (its output directory) from its last checkpoint; settings "
                              "not given are the run's own, settings given must equal them but --steps, "
-                             "--update-epochs, --num-minibatches, --lr and --num-envs")
+                             "--update-epochs, --num-minibatches, --lr, --ent-coef and --num-envs")
     parser.add_argument("--checkpoint-every", type=float, default=None, metavar="MINUTES",
                         help="also write the checkpoint and training state every MINUTES of wall-clock time "
                              "(default: only at the end)")

@@ -67,6 +67,9 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if isinstance(self.lr, bool) or not isinstance(self.lr, int | float) or not 0 < self.lr < math.inf:
             raise ValueError(f"lr must be a positive finite number, got {self.lr!r}")
+        if isinstance(self.ent_coef, bool) or not isinstance(self.ent_coef, int | float) \
+                or not 0 <= self.ent_coef < math.inf:
+            raise ValueError(f"ent_coef must be a finite number >= 0, got {self.ent_coef!r}")
         if (self.num_envs * self.num_steps) % self.num_minibatches:
             raise ValueError(f"num_envs * num_steps ({self.num_envs * self.num_steps}) must be divisible by "
                              f"num_minibatches ({self.num_minibatches})")

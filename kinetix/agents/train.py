@@ -47,13 +47,15 @@ from kinetix.level_source import MIXED_SIZES, RANDOM_LEVELS, level_source
 
 # Settings a resumed run may change: its length (`--resume DIR --steps N` extends or shortens it), how each
 # update cuts its batch for the gradient steps (`--update-epochs`, `--num-minibatches`), the learning rate
-# (`--lr`, the rate an annealed schedule starts its line from) and the number of environments (`--num-envs`: a
-# bigger batch where a GPU is lent; the environments restart on fresh levels). Nothing carried from one update to
-# the next depends on them but an annealed rate's step count, which the resume re-bases so that the rate stays that
-# of the plan at the same update (ppo.rebase_schedule, train_agent); Adam's moments carry over whatever the rate.
-EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches", "train.lr", "train.num_envs")
+# (`--lr`, the rate an annealed schedule starts its line from), the entropy bonus (`--ent-coef`: a long run whose
+# policy stays near uniform may lower it) and the number of environments (`--num-envs`: a bigger batch where a GPU
+# is lent; the environments restart on fresh levels). Nothing carried from one update to the next depends on them
+# but an annealed rate's step count, which the resume re-bases so that the rate stays that of the plan at the same
+# update (ppo.rebase_schedule, train_agent); Adam's moments carry over whatever the rate.
+EXTENDABLE = ("train.total_timesteps", "train.update_epochs", "train.num_minibatches", "train.lr", "train.ent_coef",
+              "train.num_envs")
 # TrainConfig fields a plan records where a resume changed them
-PLANNED = ("update_epochs", "num_minibatches", "lr", "num_envs")
+PLANNED = ("update_epochs", "num_minibatches", "lr", "ent_coef", "num_envs")
 # What a padded random-all run keeps when it goes on in size groups (train_agent's size_groups): all of its
 # learning but the curriculum state, whose buffer holds levels padded to l
 REGROUP_CARRIED = (".train_state", ".key", ".update_index")
@@ -146,13 +148,15 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     or not, so the run can be resumed (`kinetix train` always does; off by default for library callers such as the
     server, whose specialists need only the checkpoint). resume: continue the run whose training state is in
     OUT/resume instead of starting afresh; every setting but `steps`, `config.update_epochs`,
-    `config.num_minibatches`, `config.lr` and `config.num_envs` must equal the saved run's (CheckpointError naming
+    `config.num_minibatches`, `config.lr`, `config.ent_coef` and `config.num_envs` must equal the saved run's
+    (CheckpointError naming
     the differences otherwise). A different `steps` re-plans the run (longer or shorter, not shorter than what is
     done): an annealed learning rate is from then on that of a `steps`-long run at the same update (it jumps where
     the plan changes; a finished run's 0 becomes lr * (1 - done / steps)), and with a constant one the result equals
     a run planned that long from the start. Different epochs or minibatches cut the updates from then on
     differently; the rate stays lr * (1 - update / updates planned). A different `config.lr` holds from the resume
-    on: an annealed rate is then the new lr's line at the same update. A different `config.num_envs` (a bigger batch
+    on: an annealed rate is then the new lr's line at the same update. A different `config.ent_coef` weighs the
+    entropy bonus from the resume on. A different `config.num_envs` (a bigger batch
     on a GPU) carries the learning and the curriculum's buffer over and starts every environment on a fresh level
     (as a compact state does), random-all's size groups cut afresh; the run goes on to `steps` env steps in updates
     of the new batch (the plan records the env steps done where it changed, so a later resume counts them), with an
@@ -387,9 +391,9 @@ def batch_offset(plans: list[dict], config: TrainConfig) -> int:
 
 def replan(meta: dict, done: int, steps: int, settings: dict | None = None) -> list[dict]:
     """The saved run's plans ({"update", "steps"}: its length from that update on; with every PLANNED field,
-    "update_epochs", "num_minibatches" and "lr", where one of them changed there), with `steps` and `settings`
-    (PLANNED TrainConfig fields) from update `done` on where they differ from the plans in force. States written
-    before plans were recorded had one plan."""
+    "update_epochs", "num_minibatches", "lr", "ent_coef" and "num_envs", where one of them changed there), with
+    `steps` and `settings` (PLANNED TrainConfig fields) from update `done` on where they differ from the plans in
+    force. States written before plans were recorded had one plan."""
     plans = list(meta.get("plans") or [{"update": 0, "steps": meta["arguments"]["steps"]}])
     in_force = {k: meta.get("arguments", {}).get("config", {}).get(k) for k in PLANNED}
     for plan in plans:
@@ -463,8 +467,9 @@ class StopRule:
         return self.reason is not None
 
 
-CONFIG_OPTIONS = ("num_envs", "num_steps", "updates_per_call", "lr", "network", "width", "hidden", "update_epochs",
-                  "num_minibatches")  # `kinetix train` options that are TrainConfig fields of the same name
+# `kinetix train` options that are TrainConfig fields of the same name
+CONFIG_OPTIONS = ("num_envs", "num_steps", "updates_per_call", "lr", "ent_coef", "network", "width", "hidden",
+                  "update_epochs", "num_minibatches")
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:

@@ -1,11 +1,12 @@
 """Resumable training: a run split into jobs (a graceful stop, or a kill after periodic checkpoints, with the
 newest state file damaged) ends exactly where the uninterrupted run ends; a finished run extended with
 `--resume DIR --steps N` (constant learning rate) ends where a run planned for N steps ends; one resumed with another
-batch cut or learning rate trains on with it and records it; state files are written
+batch cut, learning rate or entropy weight trains on with it and records it; state files are written
 atomically and a checkpoint of another configuration is refused with a clear error."""
 
 import dataclasses
 import json
+import math
 import os
 import shutil
 import warnings
@@ -271,6 +272,52 @@ def test_a_learning_rate_that_is_not_positive_and_finite_is_refused():
     assert TrainConfig(lr=1e-5).lr == 1e-5
 
 
+def test_an_entropy_weight_that_is_negative_or_not_finite_is_refused():
+    for coef in (-0.01, float("nan"), float("inf"), True, "0.01"):
+        with pytest.raises(ValueError, match="ent_coef must be a finite number >= 0"):
+            TrainConfig(ent_coef=coef)
+    assert TrainConfig(ent_coef=0).ent_coef == 0 and TrainConfig(ent_coef=0.0025).ent_coef == 0.0025
+
+
+def _stopped_after_four_updates(out: Path) -> None:
+    """The first job of RUN, stopped gracefully after 4 of its 8 updates."""
+    chunks = []
+    first = train_agent("random-s", out, **RUN, save_state=True, should_stop=lambda: len(chunks) >= 2,
+                        progress=lambda m: chunks.append(m) if m["update"] % 2 == 0 else None)
+    assert first["stopped"] and len(first["metrics"]) == 4
+
+
+@pytest.mark.slow
+def test_resume_with_another_entropy_weight_trains_with_it_and_records_it(reference, tmp_path):
+    """--resume DIR --ent-coef X: the loss weighs the entropy bonus by X from the resume on. Resumed with the weight
+    it had, the run equals the uninterrupted one; with a huge weight its parameters differ and it ends nearer the
+    uniform policy (a higher logged entropy) than the uninterrupted run, and the plan records where the weight
+    changed."""
+    same = tmp_path / "same"
+    _stopped_after_four_updates(same)
+    assert main(["train", "--resume", str(same), "--ent-coef", str(CONFIG.ent_coef)]) == 0
+    assert_same_run(same, reference)
+    assert json.loads((same / "metrics.json").read_text())["plans"] == [{"update": 0, "steps": STEPS}]
+
+    bonus = tmp_path / "bonus"
+    _stopped_after_four_updates(bonus)
+    assert main(["train", "--resume", str(bonus), "--ent-coef", "50"]) == 0
+    summary = json.loads((bonus / "metrics.json").read_text())
+    assert summary["complete"] and summary["config"]["ent_coef"] == 50.0
+    assert summary["plans"][-1] == {"update": 4, "steps": STEPS, "update_epochs": 1, "num_minibatches": 2,
+                                    "lr": CONFIG.lr, "ent_coef": 50.0, "num_envs": 4}
+    # the tiny policy starts near uniform (at most 4 ln 3 + 2 ln 2); the bonus brings it nearer, where the
+    # uninterrupted run moved away
+    uniform = 4 * math.log(3) + 2 * math.log(2)
+    ref_meta, ref_arrays = final_state(reference)
+    assert uniform - summary["metrics"][-1]["entropy"] < 0.8 * (uniform - ref_meta["history"][-1]["entropy"])
+    _, arrays = final_state(bonus)
+    assert max(float(np.max(np.abs(arrays[k] - ref_arrays[k]))) for k in arrays
+               if k.startswith(".train_state.params")) > 1e-5
+    assert main(["train", "--resume", str(bonus), "--ent-coef", "-1"]) == 2  # refused, and nothing changed
+    assert json.loads((bonus / "metrics.json").read_text()) == summary
+
+
 def test_rebase_schedule_keeps_the_rate_of_the_plan_at_the_same_update():
     import jax.numpy as jnp
     import optax
@@ -311,7 +358,7 @@ def test_resume_with_another_batch_cut_trains_on_and_records_it(reference, tmp_p
     assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 9))
     assert summary["plans"] == [{"update": 0, "steps": STEPS // 2},
                                 {"update": 4, "steps": STEPS, "update_epochs": 2, "num_minibatches": 4,
-                                 "lr": CONFIG.lr, "num_envs": 4}]
+                                 "lr": CONFIG.lr, "ent_coef": CONFIG.ent_coef, "num_envs": 4}]
     _, arrays = final_state(out)
     counts = sorted(int(v) for k, v in arrays.items() if k.startswith(".train_state.opt_state") and k.endswith("count"))
     # Adam took 4 x 2 + 4 x 8 steps; the schedule's count was re-based to 4 updates x 8 at the resume
@@ -343,7 +390,7 @@ def test_resume_with_more_environments_carries_the_learning_and_counts_the_steps
     assert [m["env_steps"] for m in summary["metrics"]] == [32, 64, 96, 128, 192, 256]
     assert summary["steps"] == STEPS and summary["metrics"][-1]["total_steps"] == STEPS
     assert summary["plans"][-1] == {"update": 4, "steps": STEPS, "update_epochs": 1, "num_minibatches": 2,
-                                    "lr": CONFIG.lr, "num_envs": 8, "env_steps": 128}
+                                    "lr": CONFIG.lr, "ent_coef": CONFIG.ent_coef, "num_envs": 8, "env_steps": 128}
     assert main(["train", "--resume", str(out), "--steps", str(2 * STEPS)]) == 0  # 8 envs from the saved run
     longer = json.loads((out / "metrics.json").read_text())
     assert [m["env_steps"] for m in longer["metrics"][6:]] == [320, 384, 448, 512]
@@ -367,7 +414,7 @@ def test_resume_with_another_learning_rate_trains_at_it_and_records_it(reference
     summary = train_agent("random-s", out, **dict(RUN, config=slow), resume=True)
     assert summary["complete"] and [m["update"] for m in summary["metrics"]] == list(range(1, 9))
     assert summary["plans"][-1] == {"update": 4, "steps": STEPS, "update_epochs": 1, "num_minibatches": 2,
-                                    "lr": 1e-12, "num_envs": 4}
+                                    "lr": 1e-12, "ent_coef": CONFIG.ent_coef, "num_envs": 4}
     _, arrays = final_state(out)
     assert moved(arrays) < 1e-9  # Adam's steps are about the rate in size: 8 of them at 1e-12
     with pytest.raises(CheckpointError, match="anneal_lr: True in the checkpoint, False now"):

@@ -29,7 +29,7 @@ from kinetix.agents import checkpoint, distributions
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.evaluate import LevelBatch, level_batches
 from kinetix.agents.policy import load_network, resolve
-from kinetix.agents.rollout import fresh_state
+from kinetix.agents.rollout import fresh_state, keep_finished
 from kinetix.bindings import bound_bindings
 from kinetix.cli import positive_int
 from kinetix.level import LevelError, LevelFile
@@ -53,9 +53,7 @@ def _batch_entropy(batch: LevelBatch, network, params, key: jax.Array, steps: in
         action_key, env_key = jax.random.split(step_key)
         action = distributions.sample(action_key, outputs, ACTION)
         obs, next_state, _, terminated, truncated, _ = step(env_key, state, action, batch.params)
-        # a finished scene stays as it was (as in rollout.run_episodes), so later steps change nothing
-        state = jax.tree.map(lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b),
-                             state, next_state)
+        state = keep_finished(done, state, next_state)
         return (state, obs, done | terminated | truncated, total, count + live), None
 
     @jax2d.jit

@@ -18,6 +18,13 @@ def fresh_state(level: Level) -> EnvState:
                     last_distance=goal_distance(level).astype(jnp.float32))
 
 
+def keep_finished(done: jax.Array, state: EnvState, next_state: EnvState) -> EnvState:
+    """`next_state`, but `state` for the episodes already `done` (B,): a finished scene stays frozen, so later
+    steps of a batch that runs on change nothing in it."""
+    return jax.tree.map(lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b),
+                        state, next_state)
+
+
 def run_episodes(env: KinetixEnv, env_params: EnvParams, act: Callable, levels: Level, key: jax.Array,
                  num_steps: int) -> tuple[jax.Array, jax.Array]:
     """(solved (B,) bool, return (B,) float32) of one episode per level of the batch `levels`.
@@ -35,9 +42,7 @@ def run_episodes(env: KinetixEnv, env_params: EnvParams, act: Callable, levels: 
         obs, next_state, reward, terminated, truncated, info = step(step_key, state, action, env_params)
         total = total + jnp.where(done, 0.0, reward)
         solved = solved | (~done & info["solved"])
-        # keep the finished scene frozen so later steps cost nothing new and change nothing
-        state = jax.tree.map(lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b),
-                             state, next_state)
+        state = keep_finished(done, state, next_state)
         return (state, obs, done | terminated | truncated, solved, total), None
 
     state = jax.vmap(fresh_state)(levels)

@@ -260,6 +260,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="policy network (default: entity, permutation-invariant)")
     parser.add_argument("--width", type=positive_int, default=None, help="network layer width (default: 64)")
     parser.add_argument("--hidden", type=positive_int, default=None, help="network hidden size (default: 128)")
+    parser.add_argument("--activation", choices=["tanh", "relu"], default=None,
+                        help="hidden layers' activation (default: tanh; relu units can die for good, see "
+                             "kinetix.agents.networks)")
     parser.add_argument("--update-epochs", type=positive_int, default=None, help="PPO epochs per update (default: 4)")
     parser.add_argument("--num-minibatches", type=positive_int, default=None,
                         help="PPO minibatches per epoch (default: 4)")

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 from flax import serialization
 
-from kinetix.agents.ppo import TrainConfig
+from kinetix.agents.ppo import TrainConfig, saved_config_fields
 from kinetix.env import EnvConfig
 
 FORMAT = "kinetix-agent"
@@ -93,7 +93,7 @@ def load(path: str | os.PathLike) -> Checkpoint:
     if document.get("version") != VERSION:
         raise CheckpointError(f"{path} has checkpoint version {document.get('version')!r}; this code reads {VERSION}")
     try:
-        train_config = TrainConfig(**document["train"])
+        train_config = TrainConfig(**saved_config_fields(document["train"]))
         env = dict(document["env"])
         params = serialization.msgpack_restore((path / PARAMS_FILE).read_bytes())
     except (KeyError, TypeError, ValueError) as error:

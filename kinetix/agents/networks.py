@@ -12,6 +12,14 @@
 Every network returns (head outputs, value): logits (multi_discrete 16, discrete 11) or, for continuous actions,
 6 means followed by 6 log standard deviations (a learned, state-independent parameter); see
 kinetix.agents.distributions.
+
+Hidden layers use `activation`: tanh (the default) or relu. A relu unit whose pre-activation is negative on every
+input gets no gradient again and is dead for good. The first general run's actor lost all 128 units of its second
+hidden layer that way (dead on every state by 109M env steps, 44 % of them at 65M): its policy became one fixed
+distribution, the same on every level, that the entropy bonus then pulled to uniform (kinetix.agents.health
+measures it). A tanh unit always passes some gradient. Checkpoints from before the choice existed are relu
+(ppo.LEGACY_ACTIVATION). Each hidden layer sows its pre-activation into the "intermediates" collection under a name
+saying what it is (actor_0, critic_1, polygons_0, ...), for kinetix.agents.health; training does not collect them.
 """
 
 from __future__ import annotations
@@ -23,13 +31,28 @@ import jax.numpy as jnp
 from kinetix.actions import policy_outputs
 
 NETWORK_TYPES = ("entity", "flat", "pixels")
+ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
 
 
-def _mlp(x: jax.Array, sizes: tuple[int, ...], final_activation: bool = True) -> jax.Array:
+def check_activation(activation: str) -> str:
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"unknown activation {activation!r}: use one of {', '.join(ACTIVATIONS)}")
+    return activation
+
+
+def _hidden(module: nn.Module, x: jax.Array, activation: str, label: str) -> jax.Array:
+    """One hidden layer's nonlinearity; its input is sown as intermediates[label] (see the module docstring)."""
+    module.sow("intermediates", label, x)
+    return ACTIVATIONS[activation](x)
+
+
+def _mlp(module: nn.Module, x: jax.Array, sizes: tuple[int, ...], activation: str, label: str,
+         final_activation: bool = True) -> jax.Array:
+    """Dense layers of `sizes`, created in `module`; hidden layer i's pre-activation is sown as f"{label}_{i}"."""
     for i, size in enumerate(sizes):
         x = nn.Dense(size)(x)
         if final_activation or i < len(sizes) - 1:
-            x = nn.relu(x)
+            x = _hidden(module, x, activation, f"{label}_{i}")
     return x
 
 
@@ -39,12 +62,13 @@ class Heads(nn.Module):
 
     num_outputs: int
     hidden: int = 128
+    activation: str = "tanh"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        actor = _mlp(x, (self.hidden, self.hidden))
+        actor = _mlp(self, x, (self.hidden, self.hidden), self.activation, "actor")
         out = nn.Dense(self.num_outputs, kernel_init=nn.initializers.orthogonal(0.01))(actor)
-        critic = _mlp(x, (self.hidden, self.hidden))
+        critic = _mlp(self, x, (self.hidden, self.hidden), self.activation, "critic")
         value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(critic)[..., 0]
         return out, value
 
@@ -64,17 +88,20 @@ class EntityEncoder(nn.Module):
 
     width: int = 64
     heads: int = 4
+    activation: str = "tanh"
 
     @nn.compact
     def __call__(self, obs: dict) -> jax.Array:
-        w = self.width
-        polygons = _mlp(obs["polygons"], (w, w))
-        circles = _mlp(obs["circles"], (w, w))
+        w, act = self.width, self.activation
+        polygons = _mlp(self, obs["polygons"], (w, w), act, "polygons")
+        circles = _mlp(self, obs["circles"], (w, w), act, "circles")
         bodies = jnp.concatenate([polygons, circles], axis=0)  # global body index order
         body_mask = jnp.concatenate([obs["polygon_mask"], obs["circle_mask"]])
         ji = obs["joint_indexes"]
-        joints = _mlp(jnp.concatenate([obs["joints"], bodies[ji[:, 0]], bodies[ji[:, 1]]], axis=-1), (w, w))
-        thrusters = _mlp(jnp.concatenate([obs["thrusters"], bodies[obs["thruster_indexes"]]], axis=-1), (w, w))
+        joints = _mlp(self, jnp.concatenate([obs["joints"], bodies[ji[:, 0]], bodies[ji[:, 1]]], axis=-1), (w, w),
+                      act, "joints")
+        thrusters = _mlp(self, jnp.concatenate([obs["thrusters"], bodies[obs["thruster_indexes"]]], axis=-1),
+                         (w, w), act, "thrusters")
         tokens = jnp.concatenate([bodies, joints, thrusters], axis=0)
         mask = jnp.concatenate([body_mask, obs["joint_mask"], obs["thruster_mask"]])
         # every token may attend to every active token; inactive query rows attend to all so softmax stays finite
@@ -82,7 +109,7 @@ class EntityEncoder(nn.Module):
         mixed = nn.MultiHeadDotProductAttention(num_heads=self.heads, qkv_features=w)(
             nn.LayerNorm()(tokens), mask=attend[None])
         tokens = tokens + mixed
-        tokens = tokens + _mlp(nn.LayerNorm()(tokens), (w, w), final_activation=False)
+        tokens = tokens + _mlp(self, nn.LayerNorm()(tokens), (w, w), act, "mix", final_activation=False)
         return _masked_pool(tokens, mask)
 
 
@@ -93,22 +120,25 @@ class ActorCritic(nn.Module):
     action: str = "multi_discrete"
     width: int = 64
     hidden: int = 128
+    activation: str = "tanh"
 
     @nn.compact
     def __call__(self, obs) -> tuple[jax.Array, jax.Array]:
+        act = check_activation(self.activation)
         if self.network == "entity":
-            features = nn.vmap(EntityEncoder, variable_axes={"params": None}, split_rngs={"params": False})(
-                width=self.width)(obs)
+            # intermediates (only collected when asked for) get the batch axis like the observations
+            features = nn.vmap(EntityEncoder, variable_axes={"params": None, "intermediates": 0},
+                               split_rngs={"params": False})(width=self.width, activation=act)(obs)
         elif self.network == "flat":
-            features = _mlp(obs, (self.hidden, self.hidden))
+            features = _mlp(self, obs, (self.hidden, self.hidden), act, "flat")
         elif self.network == "pixels":
             x = obs
-            for channels, stride in ((16, 2), (32, 2), (32, 2)):
-                x = nn.relu(nn.Conv(channels, (3, 3), strides=(stride, stride))(x))
-            features = _mlp(x.reshape(x.shape[0], -1), (self.hidden,))
+            for i, (channels, stride) in enumerate(((16, 2), (32, 2), (32, 2))):
+                x = _hidden(self, nn.Conv(channels, (3, 3), strides=(stride, stride))(x), act, f"conv_{i}")
+            features = _mlp(self, x.reshape(x.shape[0], -1), (self.hidden,), act, "pixels")
         else:
             raise ValueError(f"unknown network {self.network!r}: use one of {', '.join(NETWORK_TYPES)}")
-        outputs, value = Heads(policy_outputs(self.action), self.hidden)(features)
+        outputs, value = Heads(policy_outputs(self.action), self.hidden, act)(features)
         if self.action == "continuous":  # a state-independent log std, appended to the means
             log_std = self.param("log_std", nn.initializers.constant(-0.5), (outputs.shape[-1],))
             outputs = jnp.concatenate([outputs, jnp.broadcast_to(log_std, outputs.shape)], axis=-1)

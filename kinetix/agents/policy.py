@@ -25,6 +25,7 @@ from kinetix.agents import checkpoint as checkpoint_module
 from kinetix.agents import distributions
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.networks import ActorCritic
+from kinetix.agents.ppo import make_network
 from kinetix.env import KinetixEnv
 
 GENERAL_DIR = Path(__file__).resolve().parent / "general"
@@ -93,7 +94,7 @@ def load_network(where: str | os.PathLike, env: KinetixEnv, spec: str | None = N
     if need["observation"] == "pixels" and need["pixel_resolution"] != env.config.pixel_resolution:
         raise CheckpointError(f"agent {spec} needs pixel_resolution {need['pixel_resolution']}")
     tc = ckpt.train_config
-    network = ActorCritic(network=tc.network, action=action_type, width=tc.width, hidden=tc.hidden)
+    network = make_network(tc, action_type)
     return network, jax.tree.map(jnp.asarray, ckpt.params)
 
 

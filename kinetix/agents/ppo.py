@@ -34,7 +34,7 @@ from flax.training.train_state import TrainState
 import jax2d
 from kinetix.agents import distributions, parts
 from kinetix.agents.curricula import Curriculum, Feedback
-from kinetix.agents.networks import ActorCritic
+from kinetix.agents.networks import ActorCritic, check_activation
 from kinetix.agents.rollout import fresh_state
 from kinetix.env import EnvParams, KinetixEnv
 
@@ -58,6 +58,7 @@ class TrainConfig:
     width: int = 64
     hidden: int = 128
     updates_per_call: int = 4  # updates per jitted chunk in `run`
+    activation: str = "tanh"  # of the hidden layers: tanh or relu (kinetix.agents.networks says why tanh)
 
     def __post_init__(self):
         for name in ("total_timesteps", "num_envs", "num_steps", "update_epochs", "num_minibatches",
@@ -70,6 +71,7 @@ class TrainConfig:
         if isinstance(self.ent_coef, bool) or not isinstance(self.ent_coef, int | float) \
                 or not 0 <= self.ent_coef < math.inf:
             raise ValueError(f"ent_coef must be a finite number >= 0, got {self.ent_coef!r}")
+        check_activation(self.activation)
         if (self.num_envs * self.num_steps) % self.num_minibatches:
             raise ValueError(f"num_envs * num_steps ({self.num_envs * self.num_steps}) must be divisible by "
                              f"num_minibatches ({self.num_minibatches})")
@@ -123,8 +125,18 @@ def compute_gae(reward: jax.Array, value: jax.Array, bootstrap_value: jax.Array,
     return adv, adv + value
 
 
+LEGACY_ACTIVATION = "relu"  # the activation of every network saved before TrainConfig had the field
+
+
+def saved_config_fields(fields: dict) -> dict:
+    """TrainConfig fields as a checkpoint or a run's state recorded them, with the activation of their time filled
+    in where they predate the field (so an old relu agent loads as relu, not as the tanh default)."""
+    return {"activation": LEGACY_ACTIVATION, **fields}
+
+
 def make_network(config: TrainConfig, action_type: str) -> ActorCritic:
-    return ActorCritic(network=config.network, action=action_type, width=config.width, hidden=config.hidden)
+    return ActorCritic(network=config.network, action=action_type, width=config.width, hidden=config.hidden,
+                       activation=config.activation)
 
 
 def normalise_advantages(advantages: jax.Array) -> jax.Array:

@@ -39,7 +39,7 @@ from kinetix.agents import checkpoint as checkpoint_module
 from kinetix.agents import curricula
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.policy import resolve
-from kinetix.agents.ppo import TrainConfig, make_train, rebase_schedule
+from kinetix.agents.ppo import TrainConfig, make_train, rebase_schedule, saved_config_fields
 from kinetix.agents.rollout import run_episodes
 from kinetix.env import EnvParams, make_env
 from kinetix.level import LevelError
@@ -185,7 +185,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         if ckpt is None:
             raise CheckpointError(f"--init {init}: only a trained agent (general or a checkpoint) can be fine-tuned")
         config = dataclasses.replace(config, network=ckpt.train_config.network, width=ckpt.train_config.width,
-                                     hidden=ckpt.train_config.hidden)
+                                     hidden=ckpt.train_config.hidden, activation=ckpt.train_config.activation)
         observation, action = ckpt.env["observation"], ckpt.env["action"]
         init_params = jax.tree.map(jnp.asarray, ckpt.params)
     env, env_params, factory, curriculum_name = setup_levels(level, curriculum, observation, action,
@@ -248,7 +248,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
     if group_sizes is not None:
         run_id["size_groups"] = dict(zip(MIXED_SIZES, group_sizes, strict=True))
     if saved is not None:
-        resume_module.compare_runs(saved[0]["run"], run_id,
+        saved_run = {**saved[0]["run"], "train": saved_config_fields(saved[0]["run"]["train"])}
+        resume_module.compare_runs(saved_run, run_id,
                                    ignore=EXTENDABLE + (("size_groups",) if regroup or resized else ()))
 
     def sharder(num_envs: int):
@@ -469,7 +470,7 @@ class StopRule:
 
 # `kinetix train` options that are TrainConfig fields of the same name
 CONFIG_OPTIONS = ("num_envs", "num_steps", "updates_per_call", "lr", "ent_coef", "network", "width", "hidden",
-                  "update_epochs", "num_minibatches")
+                  "update_epochs", "num_minibatches", "activation")
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:
@@ -483,6 +484,8 @@ def settings_from_args(args: argparse.Namespace) -> dict:
             raise ValueError(f"--out {args.out} differs from --resume {args.resume}: a resumed run writes where it was")
         stored = resume_module.load_latest(args.resume)[0]["arguments"]
     saved_config = {k: v for k, v in stored.get("config", {}).items() if k != "total_timesteps"}
+    if saved_config:
+        saved_config = saved_config_fields(saved_config)
     given_config = {k: getattr(args, k) for k in CONFIG_OPTIONS if getattr(args, k) is not None}
     if getattr(args, "constant_lr", None):
         given_config["anneal_lr"] = False

@@ -51,8 +51,7 @@ def train_bc(dataset: str | Path, out: str | Path, *, epochs: int = 20, batch_si
 
     from kinetix.agents import checkpoint
     from kinetix.agents.distributions import log_prob, mode
-    from kinetix.agents.networks import ActorCritic
-    from kinetix.agents.ppo import TrainConfig
+    from kinetix.agents.ppo import TrainConfig, make_network
     from kinetix.env import EnvConfig
 
     manifest, obs, actions = load_dataset(dataset)
@@ -62,7 +61,7 @@ def train_bc(dataset: str | Path, out: str | Path, *, epochs: int = 20, batch_si
     # error before the epochs run, not after.
     config = TrainConfig(network=kind, total_timesteps=n * epochs, lr=lr)
     batch_size = min(batch_size, n)
-    network = ActorCritic(network=kind, action=action_type)
+    network = make_network(config, action_type)
     key = jax.random.PRNGKey(seed)
     params = network.init(key, jax.tree.map(lambda x: jnp.asarray(x[:1]), obs))["params"]
     optimiser = optax.chain(optax.clip_by_global_norm(0.5), optax.adam(lr))

@@ -111,3 +111,26 @@ def test_entity_policy_runs_on_every_size(trained):
         obs, _ = env.reset(jax.random.key(0))
         action, value = load_policy(str(path), env).act(jax.random.key(0), obs)
         assert action.shape == (6,) and jnp.isfinite(value)
+
+
+def test_a_checkpoint_from_before_the_activation_field_loads_as_relu(env, tmp_path):
+    """Every network saved before TrainConfig had `activation` was relu; its config.json has no such field."""
+    config = TrainConfig(width=16, hidden=32, activation="relu")
+    network = make_network(config, "multi_discrete")
+    obs, _ = env.reset(jax.random.key(0))
+    batch = jax.tree.map(lambda x: x[None], obs)
+    params = network.init(jax.random.key(1), batch)["params"]
+    path = checkpoint.save(tmp_path / "old", params, config, env.config)
+    document = json.loads((path / "config.json").read_text())
+    del document["train"]["activation"]
+    (path / "config.json").write_text(json.dumps(document))
+    assert checkpoint.load(path).train_config.activation == "relu"
+    _, value = load_policy(str(path), env, deterministic=True).act(jax.random.key(0), obs)
+    np.testing.assert_allclose(value, network.apply({"params": params}, batch)[1][0], rtol=1e-6)
+    tanh_value = make_network(TrainConfig(width=16, hidden=32), "multi_discrete").apply({"params": params}, batch)[1]
+    assert abs(float(tanh_value[0]) - float(value)) > 1e-6  # the activation matters: loading as tanh would show
+
+
+def test_an_unknown_activation_is_refused():
+    with pytest.raises(ValueError, match="unknown activation 'gelu'"):
+        TrainConfig(activation="gelu")

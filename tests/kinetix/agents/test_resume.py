@@ -552,3 +552,24 @@ def test_a_run_in_size_groups_keeps_its_groups_on_other_devices(tmp_path):
     carried = [path for path in before if path.startswith((".train_state", ".key", ".update_index"))]
     assert len(carried) > 10 and all(np.array_equal(after[path], before[path]) for path in carried)
     assert after[".env_state[2].level.sim.bodies.active"].shape[0] == 6
+
+
+@pytest.mark.slow
+def test_a_run_saved_before_the_activation_field_resumes_as_the_relu_run_it_was(tmp_path):
+    """States written before TrainConfig had `activation` record no activation; their networks were relu, and a
+    resume must go on with relu (not the tanh default) and equal the uninterrupted relu run."""
+    relu = {**RUN, "config": dataclasses.replace(CONFIG, activation="relu")}
+    whole = tmp_path / "whole"
+    train_agent("random-s", whole, **relu, save_state=True)
+    out = tmp_path / "old"
+    chunks = []
+    train_agent("random-s", out, **relu, save_state=True, should_stop=lambda: len(chunks) >= 2,
+                progress=lambda m: chunks.append(m) if m["update"] % 2 == 0 else None)
+    meta, arrays, _ = resume.load_latest(out)
+    for record in (meta["arguments"]["config"], meta["run"]["train"]):
+        del record["activation"]
+    resume.save(out, 4, {k: v for k, v in meta.items() if k not in ("format", "version")}, arrays)
+    assert "activation" not in resume.load_latest(out)[0]["run"]["train"]
+    assert main(["train", "--resume", str(out)]) == 0
+    assert_same_run(out, whole)
+    assert json.loads((out / "checkpoint" / "config.json").read_text())["train"]["activation"] == "relu"

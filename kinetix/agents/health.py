@@ -1,0 +1,200 @@
+"""Is a trained network still alive? Its dead units, layer by layer, and how much its policy depends on the state.
+
+    python -m kinetix.agents.health AGENT [--level levels ...] [--steps 64] [--seed 0] [--json]
+
+Why: a relu unit whose pre-activation is negative on every input passes no gradient and never recovers. The first
+general run (kinetix/agents/general/sfl-large) lost its actor that way: by 109M env steps all 128 units of the
+actor's second hidden layer were dead on every state, so its logits were one constant vector, the same
+distribution on every level, and training could not change that any more. Its summed entropy rose toward uniform,
+which looked like an entropy bonus set too strong; this module measures the cause.
+
+Measured over the states of one episode per level with sampled actions (as `kinetix eval`), the first `steps`
+agent steps, counting only steps before the episode ends:
+  - per hidden layer (kinetix.agents.networks sows each one's pre-activation): a unit is *dead* when the
+    activation's slope is below DEAD_SLOPE at every measured input (no gradient reaches its weights); *active* is
+    the share of (input, unit) pairs above it. Entity layers count only the rows of real entities, not padding.
+  - per binding, on the levels that use it (kinetix.bindings.bound_bindings): the information the policy's choice
+    carries about the state, I(S; A) = H(mean policy) - mean H(policy), in nats. 0 means one fixed distribution
+    whatever the state: a policy that cannot act on what it sees. Only for multi_discrete agents.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jax2d
+from kinetix.actions import action_space
+from kinetix.agents import checkpoint, distributions
+from kinetix.agents.checkpoint import CheckpointError
+from kinetix.agents.evaluate import LevelBatch, level_batches
+from kinetix.agents.policy import load_network, resolve
+from kinetix.agents.rollout import fresh_state, keep_finished
+from kinetix.bindings import bound_bindings
+from kinetix.cli import positive_int
+from kinetix.level import LevelError, LevelFile
+from kinetix.level_source import eval_levels
+
+ACTION = "multi_discrete"
+CHOICES = tuple(int(n) for n in action_space(ACTION).nvec)  # (3, 3, 3, 3, 2, 2)
+DEAD_SLOPE = 1e-3  # below this slope a unit passes (next to) no gradient
+# entity layers (networks.EntityEncoder labels) and the observation masks of their rows
+ENTITY_ROWS = {"polygons": ("polygon_mask",), "circles": ("circle_mask",), "joints": ("joint_mask",),
+               "thrusters": ("thruster_mask",),
+               "mix": ("polygon_mask", "circle_mask", "joint_mask", "thruster_mask")}
+
+
+def slope(activation: str, pre: jax.Array) -> jax.Array:
+    if activation == "relu":
+        return (pre > 0).astype(pre.dtype)
+    return 1.0 - jnp.tanh(pre) ** 2
+
+
+def _layers(tree: dict) -> dict[str, jax.Array]:
+    """{label: pre-activation} from the "intermediates" collection (each sown value is a one-element tuple)."""
+    found = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        label = next(p.key for p in reversed(path) if isinstance(p, jax.tree_util.DictKey))
+        found[label] = leaf
+    return found
+
+
+def _rows(label: str, pre: jax.Array, obs, live: jax.Array) -> jax.Array:
+    """Which rows of `pre` (all axes but the last) are real inputs: live states, and real entities."""
+    kind = label.rsplit("_", 1)[0]
+    if kind in ENTITY_ROWS:
+        entities = jnp.concatenate([obs[name] for name in ENTITY_ROWS[kind]], axis=-1)
+        return entities & live[:, None]
+    return jnp.broadcast_to(live.reshape(live.shape + (1,) * (pre.ndim - 2)), pre.shape[:-1])
+
+
+def _measure_batch(batch: LevelBatch, network, params, activation: str, key: jax.Array, steps: int) -> dict:
+    env = batch.env
+    step = jax.vmap(env.step_no_reset, in_axes=(None, 0, 0, 0))
+
+    def layer_stats(obs, live):
+        (outputs, _), state = network.apply({"params": params}, obs, mutable=["intermediates"])
+        stats = {}
+        for label, pre in _layers(state["intermediates"]).items():
+            rows = _rows(label, pre, obs, live)
+            alive = (slope(activation, pre) >= DEAD_SLOPE) & rows[..., None]
+            axes = tuple(range(pre.ndim - 1))
+            stats[label] = (alive.any(axes), alive.sum(axes).astype(jnp.float32), rows.sum().astype(jnp.float32))
+        return outputs, stats
+
+    def one(carry, step_key):
+        state, obs, done, acc = carry
+        live = ~done
+        outputs, stats = layer_stats(obs, live)
+        probs = [jax.nn.softmax(p) for p in jnp.split(outputs, np.cumsum(CHOICES)[:-1].tolist(), axis=-1)]
+        entropies = distributions.binding_entropies(outputs)
+        acc = {"layers": jax.tree.map(lambda a, b: a | b if a.dtype == bool else a + b, acc["layers"], stats),
+               "probs": [a + jnp.where(live[:, None], p, 0.0) for a, p in zip(acc["probs"], probs, strict=True)],
+               "entropy": acc["entropy"] + jnp.where(live[:, None], entropies, 0.0),
+               "count": acc["count"] + live}
+        action_key, env_key = jax.random.split(step_key)
+        action = distributions.sample(action_key, outputs, ACTION)
+        obs, next_state, _, terminated, truncated, _ = step(env_key, state, action, batch.params)
+        state = keep_finished(done, state, next_state)
+        return (state, obs, done | terminated | truncated, acc), None
+
+    @jax2d.jit
+    def run(levels, key):
+        state = jax.vmap(fresh_state)(levels)
+        obs = jax.vmap(env.observe)(state)
+        b = len(batch.members)
+        done = jnp.zeros((b,), bool)
+        _, zero_stats = jax.eval_shape(layer_stats, obs, done)
+        acc = {"layers": jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), zero_stats),
+               "probs": [jnp.zeros((b, n)) for n in CHOICES], "entropy": jnp.zeros((b, len(CHOICES))),
+               "count": jnp.zeros((b,), jnp.int32)}
+        (_, _, _, acc), _ = jax.lax.scan(one, (state, obs, done, acc), jax.random.split(key, min(steps, batch.steps)))
+        return acc, jax.vmap(bound_bindings)(levels)
+
+    acc, bound = run(batch.levels, key)
+    return jax.tree.map(np.asarray, {**acc, "bound": bound})
+
+
+def health(agent: str, levels: list[tuple[str, LevelFile]], steps: int = 64, seed: int = 0) -> dict:
+    """{"layers": {label: {"units", "dead", "active"}}, "information": per binding I(S; A) in nats on the levels
+    that use it (None where none does), "information_mean", "activation", "states"}."""
+    where = resolve(agent)
+    if isinstance(where, str):
+        raise CheckpointError(f"{agent!r} has no network to measure: give a checkpoint directory or general")
+    ckpt = checkpoint.load(where)
+    if ckpt.env["action"] != ACTION:
+        raise CheckpointError(f"agent {agent} acts in the {ckpt.env['action']!r} space; this measure is defined "
+                              f"for {ACTION} agents")
+    activation = ckpt.train_config.activation
+    alive: dict[str, np.ndarray] = {}
+    active: dict[str, float] = {}
+    rows: dict[str, float] = {}
+    probs = [np.zeros(n) for n in CHOICES]  # summed over used states, per binding
+    entropy, used = np.zeros(len(CHOICES)), np.zeros(len(CHOICES))
+    states = 0
+    key = jax.random.key(seed)
+    for batch in level_batches(levels, ckpt.env["observation"]):
+        network, params = load_network(where, batch.env, agent)
+        key, sub = jax.random.split(key)
+        acc = _measure_batch(batch, network, params, activation, sub, steps)
+        for label, (any_alive, active_sum, row_count) in acc["layers"].items():
+            alive[label] = alive.get(label, np.zeros_like(any_alive)) | any_alive
+            active[label] = active.get(label, 0.0) + float(active_sum.sum())
+            rows[label] = rows.get(label, 0.0) + float(row_count)
+        weights = acc["count"][:, None] * acc["bound"]  # (B, 6): states counted on a binding's using levels
+        for i in range(len(CHOICES)):
+            probs[i] += (acc["probs"][i] * acc["bound"][:, i:i + 1]).sum(0)
+        entropy += (acc["entropy"] * acc["bound"]).sum(0)
+        used += weights.sum(0)
+        states += int(acc["count"].sum())
+    information = []
+    for i in range(len(CHOICES)):
+        if not used[i]:
+            information.append(None)
+            continue
+        mean = probs[i] / used[i]
+        mean_entropy = -float(np.sum(mean * np.log(np.maximum(mean, 1e-30))))
+        information.append(max(0.0, mean_entropy - float(entropy[i] / used[i])))
+    layers = {label: {"units": int(alive[label].size), "dead": float(1.0 - alive[label].mean()),
+                      "active": active[label] / (rows[label] * alive[label].size) if rows[label] else None}
+              for label in sorted(alive)}
+    known = [x for x in information if x is not None]
+    return {"activation": activation, "states": states, "layers": layers, "information": information,
+            "information_mean": float(np.mean(known)) if known else None}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m kinetix.agents.health", description=__doc__.split("\n\n")[0])
+    parser.add_argument("agent", help="a checkpoint directory, or general")
+    parser.add_argument("--level", nargs="+", default=["levels"],
+                        help="level files, directories or generated sets (as kinetix eval; default levels)")
+    parser.add_argument("--steps", type=positive_int, default=64, help="agent steps per episode measured (64)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    args = parser.parse_args(argv)
+    try:
+        levels = [named for spec in args.level for named in eval_levels(spec)]
+        result = health(args.agent, levels, steps=args.steps, seed=args.seed)
+    except (LevelError, CheckpointError) as error:
+        print(f"health: {error}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    print(f"{'layer':<12} {'units':>5} {'dead':>6} {'active':>6}   ({result['activation']}, {len(levels)} levels, "
+          f"{result['states']} states, agent {args.agent})")
+    for label, layer in result["layers"].items():
+        active = "     -" if layer["active"] is None else f"{layer['active']:6.1%}"
+        print(f"{label:<12} {layer['units']:>5} {layer['dead']:6.1%} {active}")
+    info = " ".join("-" if x is None else f"{x:.3f}" for x in result["information"])
+    print(f"policy information I(state; action) per binding, nats, on the levels using it: {info}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

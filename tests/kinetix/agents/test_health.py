@@ -1,0 +1,104 @@
+"""The network-health diagnostic: dead units per hidden layer and the information the policy's choice carries about
+the state, on real checkpoints; a relu layer killed by hand reads 100% dead and a policy that cannot see the state
+reads 0 nats; bad input is refused."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from kinetix.agents import checkpoint, health
+from kinetix.agents.networks import ActorCritic
+from kinetix.agents.ppo import TrainConfig, make_network
+from kinetix.env import EnvConfig, make_env
+from kinetix.level import empty_level
+
+LEVELS = ["levels/car_right.json", "levels/lunar_lander.json", "levels/catapult.json"]
+
+
+def _params(config, action="multi_discrete"):
+    env = make_env(EnvConfig("s", action=action), empty_level("s"))
+    obs, _ = env.reset(jax.random.key(0))
+    params = make_network(config, action).init(jax.random.key(1), jax.tree.map(lambda x: x[None], obs))["params"]
+    return env, params
+
+
+def _save(path, config, params, env):
+    checkpoint.save(path, params, config, env.config, {"steps": 0.0})
+    return str(path)
+
+
+def _run(capsys, agent, *extra):
+    assert health.main([agent, "--level", *LEVELS, "--steps", "8", "--json", *extra]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_every_hidden_layer_is_reported_and_a_sharpened_policy_depends_on_the_state(tmp_path, capsys):
+    config = TrainConfig(width=16, hidden=32, activation="tanh")
+    env, params = _params(config)
+    # a freshly initialised head is near uniform on purpose (orthogonal 0.01); scale it so the state shows
+    params["Heads_0"]["Dense_2"]["kernel"] = params["Heads_0"]["Dense_2"]["kernel"] * 300.0
+    result = _run(capsys, _save(tmp_path / "agent", config, params, env))
+    assert result["activation"] == "tanh" and result["states"] > 0
+    expected = {"actor_0", "actor_1", "critic_0", "critic_1", "polygons_0", "polygons_1", "circles_0", "circles_1",
+                "joints_0", "joints_1", "thrusters_0", "thrusters_1", "mix_0"}
+    assert set(result["layers"]) == expected
+    assert result["layers"]["actor_1"]["units"] == 32 and result["layers"]["polygons_0"]["units"] == 16
+    for layer in result["layers"].values():
+        assert 0.0 <= layer["dead"] < 0.5 and 0.5 < layer["active"] <= 1.0  # a fresh tanh network is alive
+    used = [x for x in result["information"] if x is not None]
+    assert used and all(x >= 0.0 for x in used) and max(used) > 1e-3
+    assert result["information_mean"] == pytest.approx(float(np.mean(used)))
+
+
+def test_a_dead_relu_layer_reads_dead_and_its_policy_carries_no_information(tmp_path, capsys):
+    config = TrainConfig(width=16, hidden=32, activation="relu")
+    env, params = _params(config)
+    params["Heads_0"]["Dense_2"]["kernel"] = params["Heads_0"]["Dense_2"]["kernel"] * 300.0
+    healthy = _run(capsys, _save(tmp_path / "healthy", config, params, env))
+    # what happened to the first general run: every unit of the actor's second layer negative on every input
+    params["Heads_0"]["Dense_1"]["bias"] = jnp.full_like(params["Heads_0"]["Dense_1"]["bias"], -1e3)
+    dead = _run(capsys, _save(tmp_path / "dead", config, params, env))
+    assert dead["activation"] == "relu"
+    assert dead["layers"]["actor_1"]["dead"] == 1.0 and dead["layers"]["actor_1"]["active"] == 0.0
+    assert healthy["layers"]["actor_1"]["dead"] < 1.0
+    assert dead["layers"]["critic_1"]["dead"] < 1.0  # the critic's trunk is untouched
+    assert max(x for x in healthy["information"] if x is not None) > 1e-3
+    assert all(x is None or x < 1e-6 for x in dead["information"])  # one fixed distribution on every state
+
+
+def test_slope_marks_dead_units_for_either_activation():
+    pre = jnp.array([-5.0, -0.1, 0.0, 0.1, 5.0])
+    assert (np.asarray(health.slope("relu", pre)) >= health.DEAD_SLOPE).tolist() == [False, False, False, True, True]
+    assert (np.asarray(health.slope("tanh", pre)) >= health.DEAD_SLOPE).tolist() == [False, True, True, True, False]
+
+
+def test_bad_agents_are_refused(tmp_path, capsys):
+    config = TrainConfig(width=16, hidden=32)
+    env, params = _params(config, action="continuous")
+    agent = _save(tmp_path / "continuous", config, params, env)
+    assert health.main([agent, "--level", LEVELS[0]]) == 2
+    assert "multi_discrete" in capsys.readouterr().err
+    assert health.main(["random", "--level", LEVELS[0]]) == 2
+    assert "no network" in capsys.readouterr().err
+    assert health.main([str(tmp_path / "missing"), "--level", LEVELS[0]]) == 2
+    assert "unknown agent" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    assert health.main(["general", "--level", str(bad)]) == 2
+    assert "bad.json" in capsys.readouterr().err
+
+
+def test_sown_pre_activations_do_not_change_the_parameters_or_outputs():
+    obs = make_env(EnvConfig("s"), empty_level("s")).reset(jax.random.key(0))[0]
+    batch = jax.tree.map(lambda x: jnp.stack([x, x]), obs)
+    network = ActorCritic(width=16, hidden=32)
+    params = network.init(jax.random.key(1), batch)
+    assert set(params) == {"params"}  # intermediates are only collected when asked for
+    plain = network.apply(params, batch)
+    collected, state = network.apply(params, batch, mutable=["intermediates"])
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(collected), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert state["intermediates"]  # and then they are there

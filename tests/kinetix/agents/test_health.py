@@ -15,7 +15,7 @@ from kinetix.agents.ppo import TrainConfig, make_network
 from kinetix.env import EnvConfig, make_env
 from kinetix.level import empty_level
 
-LEVELS = ["levels/car_right.json", "levels/lunar_lander.json", "levels/catapult.json"]
+LEVELS = ["levels/car_right.json", "levels/thruster_maze.json", "levels/seesaw.json"]  # all m: one compile
 
 
 def _params(config, action="multi_discrete"):

@@ -15,8 +15,6 @@ only steps before the episode ends. Only for multi_discrete agents.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 
 import jax
@@ -25,15 +23,13 @@ import numpy as np
 
 import jax2d
 from kinetix.actions import action_space
-from kinetix.agents import checkpoint, distributions
+from kinetix.agents import checkpoint, diagnostics, distributions
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.evaluate import LevelBatch, level_batches
 from kinetix.agents.policy import load_network, resolve
 from kinetix.agents.rollout import fresh_state, keep_finished
 from kinetix.bindings import bound_bindings
-from kinetix.cli import positive_int
-from kinetix.level import LevelError, LevelFile
-from kinetix.level_source import eval_levels
+from kinetix.level import LevelFile
 
 ACTION = "multi_discrete"
 CHOICES = tuple(int(n) for n in action_space(ACTION).nvec)  # (3, 3, 3, 3, 2, 2)
@@ -100,24 +96,10 @@ def binding_entropy(agent: str, levels: list[tuple[str, LevelFile]], steps: int 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m kinetix.agents.binding_entropy",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("agent", help="a checkpoint directory, or general")
-    parser.add_argument("--level", nargs="+", default=["levels"],
-                        help="level files, directories or generated sets (as kinetix eval; default levels)")
-    parser.add_argument("--steps", type=positive_int, default=64, help="agent steps per episode measured (64)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    args = parser.parse_args(argv)
-    try:
-        levels = [named for spec in args.level for named in eval_levels(spec)]
-        result = binding_entropy(args.agent, levels, steps=args.steps, seed=args.seed)
-    except (LevelError, CheckpointError) as error:
-        print(f"binding_entropy: {error}", file=sys.stderr)
-        return 2
-    if args.json:
-        print(json.dumps(result))
-        return 0
+    outcome = diagnostics.run("binding_entropy", __doc__, binding_entropy, argv)
+    if isinstance(outcome, int):
+        return outcome
+    args, levels, result = outcome
     fmt = lambda v: "    -" if v is None else f"{v:5.3f}"
     print(f"{'binding':<11} {'used':>5} ({'levels':>6})  {'unused':>6} ({'levels':>6})  maximum   "
           f"({len(levels)} levels, {args.steps} steps, agent {args.agent})")

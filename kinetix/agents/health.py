@@ -20,8 +20,6 @@ agent steps, counting only steps before the episode ends:
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 
 import jax
@@ -30,15 +28,13 @@ import numpy as np
 
 import jax2d
 from kinetix.actions import action_space
-from kinetix.agents import checkpoint, distributions
+from kinetix.agents import checkpoint, diagnostics, distributions
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.evaluate import LevelBatch, level_batches
 from kinetix.agents.policy import load_network, resolve
 from kinetix.agents.rollout import fresh_state, keep_finished
 from kinetix.bindings import bound_bindings
-from kinetix.cli import positive_int
-from kinetix.level import LevelError, LevelFile
-from kinetix.level_source import eval_levels
+from kinetix.level import LevelFile
 
 ACTION = "multi_discrete"
 CHOICES = tuple(int(n) for n in action_space(ACTION).nvec)  # (3, 3, 3, 3, 2, 2)
@@ -169,23 +165,10 @@ def health(agent: str, levels: list[tuple[str, LevelFile]], steps: int = 64, see
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m kinetix.agents.health", description=__doc__.split("\n\n")[0])
-    parser.add_argument("agent", help="a checkpoint directory, or general")
-    parser.add_argument("--level", nargs="+", default=["levels"],
-                        help="level files, directories or generated sets (as kinetix eval; default levels)")
-    parser.add_argument("--steps", type=positive_int, default=64, help="agent steps per episode measured (64)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    args = parser.parse_args(argv)
-    try:
-        levels = [named for spec in args.level for named in eval_levels(spec)]
-        result = health(args.agent, levels, steps=args.steps, seed=args.seed)
-    except (LevelError, CheckpointError) as error:
-        print(f"health: {error}", file=sys.stderr)
-        return 2
-    if args.json:
-        print(json.dumps(result))
-        return 0
+    outcome = diagnostics.run("health", __doc__, health, argv)
+    if isinstance(outcome, int):
+        return outcome
+    args, levels, result = outcome
     print(f"{'layer':<12} {'units':>5} {'dead':>6} {'active':>6}   ({result['activation']}, {len(levels)} levels, "
           f"{result['states']} states, agent {args.agent})")
     for label, layer in result["layers"].items():

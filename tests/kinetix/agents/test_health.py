@@ -67,6 +67,10 @@ def test_a_dead_relu_layer_reads_dead_and_its_policy_carries_no_information(tmp_
     assert dead["layers"]["critic_1"]["dead"] < 1.0  # the critic's trunk is untouched
     assert max(x for x in healthy["information"] if x is not None) > 1e-3
     assert all(x is None or x < 1e-6 for x in dead["information"])  # one fixed distribution on every state
+    assert health.main([str(tmp_path / "dead"), "--level", *LEVELS, "--steps", "8"]) == 0  # the table
+    table = capsys.readouterr().out
+    assert "relu, 3 levels" in table and any(line.split()[:3] == ["actor_1", "32", "100.0%"]
+                                             for line in table.splitlines())
 
 
 def test_slope_marks_dead_units_for_either_activation():

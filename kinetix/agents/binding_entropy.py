@@ -17,71 +17,38 @@ from __future__ import annotations
 
 import sys
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-import jax2d
-from kinetix.actions import action_space
-from kinetix.agents import checkpoint, diagnostics, distributions
-from kinetix.agents.checkpoint import CheckpointError
-from kinetix.agents.evaluate import LevelBatch, level_batches
-from kinetix.agents.policy import load_network, resolve
-from kinetix.agents.rollout import fresh_state, keep_finished
-from kinetix.bindings import bound_bindings
+from kinetix.agents import diagnostics, distributions
+from kinetix.agents.diagnostics import CHOICES
 from kinetix.level import LevelFile
 
-ACTION = "multi_discrete"
-CHOICES = tuple(int(n) for n in action_space(ACTION).nvec)  # (3, 3, 3, 3, 2, 2)
 NAMES = ("motor 0", "motor 1", "motor 2", "motor 3", "thruster 0", "thruster 1")
 
 
-def _batch_entropy(batch: LevelBatch, network, params, key: jax.Array, steps: int) -> tuple[np.ndarray, ...]:
-    """(entropy sums (B, 6), steps counted (B,), bound (B, 6)) for one compile group, one episode per level."""
-    env = batch.env
-    step = jax.vmap(env.step_no_reset, in_axes=(None, 0, 0, 0))
+def _probe(network, params):
+    """Per level: (entropy summed over its live steps (6,), live steps counted)."""
+    def init(obs, live):
+        return jnp.zeros(live.shape + (len(CHOICES),)), jnp.zeros(live.shape, jnp.int32)
 
-    def one(carry, step_key):
-        state, obs, done, total, count = carry
+    def observe(obs, live, acc):
+        total, count = acc
         outputs, _ = network.apply({"params": params}, obs)
-        live = ~done
         total = total + jnp.where(live[:, None], distributions.binding_entropies(outputs), 0.0)
-        action_key, env_key = jax.random.split(step_key)
-        action = distributions.sample(action_key, outputs, ACTION)
-        obs, next_state, _, terminated, truncated, _ = step(env_key, state, action, batch.params)
-        state = keep_finished(done, state, next_state)
-        return (state, obs, done | terminated | truncated, total, count + live), None
+        return outputs, (total, count + live)
 
-    @jax2d.jit
-    def run(levels, key):
-        state = jax.vmap(fresh_state)(levels)
-        obs = jax.vmap(env.observe)(state)
-        b = len(batch.members)
-        init = (state, obs, jnp.zeros((b,), bool), jnp.zeros((b, len(CHOICES))), jnp.zeros((b,), jnp.int32))
-        (_, _, _, total, count), _ = jax.lax.scan(one, init, jax.random.split(key, min(steps, batch.steps)))
-        return total, count, jax.vmap(bound_bindings)(levels)
-
-    return tuple(np.asarray(x) for x in run(batch.levels, key))
+    return init, observe
 
 
 def binding_entropy(agent: str, levels: list[tuple[str, LevelFile]], steps: int = 64, seed: int = 0) -> dict:
     """Per binding: mean entropy on the levels that use it ("used") and on those that do not ("unused"), the
     number of levels of each, the uniform maximum, and the used bindings' mean entropy as a fraction of it."""
-    where = resolve(agent)
-    if isinstance(where, str):
-        raise CheckpointError(f"{agent!r} has no network to measure: give a checkpoint directory or general")
-    trained = checkpoint.load(where).env
-    if trained["action"] != ACTION:
-        raise CheckpointError(f"agent {agent} acts in the {trained['action']!r} space; binding entropy is defined "
-                              f"for {ACTION} agents")
+    where, ckpt = diagnostics.load_multi_discrete(agent)
     sums = {"used": np.zeros(len(CHOICES)), "unused": np.zeros(len(CHOICES))}
     counts = {"used": np.zeros(len(CHOICES)), "unused": np.zeros(len(CHOICES))}
     n_levels = {"used": np.zeros(len(CHOICES), int), "unused": np.zeros(len(CHOICES), int)}
-    key = jax.random.key(seed)
-    for batch in level_batches(levels, trained["observation"]):
-        network, params = load_network(where, batch.env, agent)
-        key, sub = jax.random.split(key)
-        total, count, bound = _batch_entropy(batch, network, params, sub, steps)
+    for (total, count), bound in diagnostics.episodes(agent, where, ckpt, levels, steps, seed, _probe):
         for name, mask in (("used", bound), ("unused", ~bound)):
             sums[name] += (total * mask).sum(0)
             counts[name] += (count[:, None] * mask).sum(0)

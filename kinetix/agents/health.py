@@ -26,18 +26,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import jax2d
-from kinetix.actions import action_space
-from kinetix.agents import checkpoint, diagnostics, distributions
-from kinetix.agents.checkpoint import CheckpointError
-from kinetix.agents.evaluate import LevelBatch, level_batches
-from kinetix.agents.policy import load_network, resolve
-from kinetix.agents.rollout import fresh_state, keep_finished
-from kinetix.bindings import bound_bindings
+from kinetix.agents import diagnostics, distributions
+from kinetix.agents.diagnostics import CHOICES
 from kinetix.level import LevelFile
 
-ACTION = "multi_discrete"
-CHOICES = tuple(int(n) for n in action_space(ACTION).nvec)  # (3, 3, 3, 3, 2, 2)
 DEAD_SLOPE = 1e-3  # below this slope a unit passes (next to) no gradient
 # entity layers (networks.EntityEncoder labels) and the observation masks of their rows
 ENTITY_ROWS = {"polygons": ("polygon_mask",), "circles": ("circle_mask",), "joints": ("joint_mask",),
@@ -69,63 +61,46 @@ def _rows(label: str, pre: jax.Array, obs, live: jax.Array) -> jax.Array:
     return jnp.broadcast_to(live.reshape(live.shape + (1,) * (pre.ndim - 2)), pre.shape[:-1])
 
 
-def _measure_batch(batch: LevelBatch, network, params, activation: str, key: jax.Array, steps: int) -> dict:
-    env = batch.env
-    step = jax.vmap(env.step_no_reset, in_axes=(None, 0, 0, 0))
+def _probe(activation: str):
+    """Per hidden layer: (any live input alive (units,), alive (input, unit) pairs (units,), real inputs); per level:
+    policy probabilities and entropies summed over its live steps, and its live steps counted."""
+    def probe(network, params):
+        def layer_stats(obs, live):
+            (outputs, _), state = network.apply({"params": params}, obs, mutable=["intermediates"])
+            stats = {}
+            for label, pre in _layers(state["intermediates"]).items():
+                rows = _rows(label, pre, obs, live)
+                alive = (slope(activation, pre) >= DEAD_SLOPE) & rows[..., None]
+                axes = tuple(range(pre.ndim - 1))
+                stats[label] = (alive.any(axes), alive.sum(axes).astype(jnp.float32), rows.sum().astype(jnp.float32))
+            return outputs, stats
 
-    def layer_stats(obs, live):
-        (outputs, _), state = network.apply({"params": params}, obs, mutable=["intermediates"])
-        stats = {}
-        for label, pre in _layers(state["intermediates"]).items():
-            rows = _rows(label, pre, obs, live)
-            alive = (slope(activation, pre) >= DEAD_SLOPE) & rows[..., None]
-            axes = tuple(range(pre.ndim - 1))
-            stats[label] = (alive.any(axes), alive.sum(axes).astype(jnp.float32), rows.sum().astype(jnp.float32))
-        return outputs, stats
+        def init(obs, live):
+            _, zero_stats = jax.eval_shape(layer_stats, obs, live)
+            b = live.shape[0]
+            return {"layers": jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), zero_stats),
+                    "probs": [jnp.zeros((b, n)) for n in CHOICES], "entropy": jnp.zeros((b, len(CHOICES))),
+                    "count": jnp.zeros((b,), jnp.int32)}
 
-    def one(carry, step_key):
-        state, obs, done, acc = carry
-        live = ~done
-        outputs, stats = layer_stats(obs, live)
-        probs = [jax.nn.softmax(p) for p in jnp.split(outputs, np.cumsum(CHOICES)[:-1].tolist(), axis=-1)]
-        entropies = distributions.binding_entropies(outputs)
-        acc = {"layers": jax.tree.map(lambda a, b: a | b if a.dtype == bool else a + b, acc["layers"], stats),
-               "probs": [a + jnp.where(live[:, None], p, 0.0) for a, p in zip(acc["probs"], probs, strict=True)],
-               "entropy": acc["entropy"] + jnp.where(live[:, None], entropies, 0.0),
-               "count": acc["count"] + live}
-        action_key, env_key = jax.random.split(step_key)
-        action = distributions.sample(action_key, outputs, ACTION)
-        obs, next_state, _, terminated, truncated, _ = step(env_key, state, action, batch.params)
-        state = keep_finished(done, state, next_state)
-        return (state, obs, done | terminated | truncated, acc), None
+        def observe(obs, live, acc):
+            outputs, stats = layer_stats(obs, live)
+            probs = [jax.nn.softmax(p) for p in jnp.split(outputs, np.cumsum(CHOICES)[:-1].tolist(), axis=-1)]
+            entropies = distributions.binding_entropies(outputs)
+            return outputs, {
+                "layers": jax.tree.map(lambda a, b: a | b if a.dtype == bool else a + b, acc["layers"], stats),
+                "probs": [a + jnp.where(live[:, None], p, 0.0) for a, p in zip(acc["probs"], probs, strict=True)],
+                "entropy": acc["entropy"] + jnp.where(live[:, None], entropies, 0.0),
+                "count": acc["count"] + live}
 
-    @jax2d.jit
-    def run(levels, key):
-        state = jax.vmap(fresh_state)(levels)
-        obs = jax.vmap(env.observe)(state)
-        b = len(batch.members)
-        done = jnp.zeros((b,), bool)
-        _, zero_stats = jax.eval_shape(layer_stats, obs, done)
-        acc = {"layers": jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), zero_stats),
-               "probs": [jnp.zeros((b, n)) for n in CHOICES], "entropy": jnp.zeros((b, len(CHOICES))),
-               "count": jnp.zeros((b,), jnp.int32)}
-        (_, _, _, acc), _ = jax.lax.scan(one, (state, obs, done, acc), jax.random.split(key, min(steps, batch.steps)))
-        return acc, jax.vmap(bound_bindings)(levels)
+        return init, observe
 
-    acc, bound = run(batch.levels, key)
-    return jax.tree.map(np.asarray, {**acc, "bound": bound})
+    return probe
 
 
 def health(agent: str, levels: list[tuple[str, LevelFile]], steps: int = 64, seed: int = 0) -> dict:
     """{"layers": {label: {"units", "dead", "active"}}, "information": per binding I(S; A) in nats on the levels
     that use it (None where none does), "information_mean", "activation", "states"}."""
-    where = resolve(agent)
-    if isinstance(where, str):
-        raise CheckpointError(f"{agent!r} has no network to measure: give a checkpoint directory or general")
-    ckpt = checkpoint.load(where)
-    if ckpt.env["action"] != ACTION:
-        raise CheckpointError(f"agent {agent} acts in the {ckpt.env['action']!r} space; this measure is defined "
-                              f"for {ACTION} agents")
+    where, ckpt = diagnostics.load_multi_discrete(agent)
     activation = ckpt.train_config.activation
     alive: dict[str, np.ndarray] = {}
     active: dict[str, float] = {}
@@ -133,19 +108,15 @@ def health(agent: str, levels: list[tuple[str, LevelFile]], steps: int = 64, see
     probs = [np.zeros(n) for n in CHOICES]  # summed over used states, per binding
     entropy, used = np.zeros(len(CHOICES)), np.zeros(len(CHOICES))
     states = 0
-    key = jax.random.key(seed)
-    for batch in level_batches(levels, ckpt.env["observation"]):
-        network, params = load_network(where, batch.env, agent)
-        key, sub = jax.random.split(key)
-        acc = _measure_batch(batch, network, params, activation, sub, steps)
+    for acc, bound in diagnostics.episodes(agent, where, ckpt, levels, steps, seed, _probe(activation)):
         for label, (any_alive, active_sum, row_count) in acc["layers"].items():
             alive[label] = alive.get(label, np.zeros_like(any_alive)) | any_alive
             active[label] = active.get(label, 0.0) + float(active_sum.sum())
             rows[label] = rows.get(label, 0.0) + float(row_count)
-        weights = acc["count"][:, None] * acc["bound"]  # (B, 6): states counted on a binding's using levels
+        weights = acc["count"][:, None] * bound  # (B, 6): states counted on a binding's using levels
         for i in range(len(CHOICES)):
-            probs[i] += (acc["probs"][i] * acc["bound"][:, i:i + 1]).sum(0)
-        entropy += (acc["entropy"] * acc["bound"]).sum(0)
+            probs[i] += (acc["probs"][i] * bound[:, i:i + 1]).sum(0)
+        entropy += (acc["entropy"] * bound).sum(0)
         used += weights.sum(0)
         states += int(acc["count"].sum())
     information = []

@@ -5,8 +5,11 @@
     obs, state = env.reset(key, params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 
-Everything is pure and jit/vmap-able: jit `env.reset` / `env.step` (the env itself is static), vmap over
-keys, states, actions and even params. `EnvConfig` is static (changing it recompiles), `EnvParams` traced.
+Everything is pure and jit/vmap-able: vmap over keys, states, actions and even params. `EnvConfig` is static
+(changing it recompiles), `EnvParams` traced. `reset`, `step` and `step_no_reset` are jitted with the env static
+(as gymnax does), so a Python loop of `env.step` compiles once per env; inside a caller's jit they are inlined.
+Without it every eager call traced and compiled its physics scan afresh: seconds a step, and the compiled code
+piled up until LLVM could map no more (the process aborted after ~40 steps at m).
 
 One agent step
   1. the action becomes 4 motor and 2 thruster binding values (kinetix.actions), then per-joint and
@@ -35,6 +38,7 @@ over the transition's physics steps, jax2d.SimState.frozen; 0 in a healthy run).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -115,6 +119,9 @@ class StepOutput(NamedTuple):
 _NOT_A_STEP_OUTPUT = "previous must be what reset_compact or step_compact of this env returned"
 
 
+_static_self = functools.partial(jax2d.jit, static_argnums=0)  # a method jitted per env (hashed by identity)
+
+
 def _select(pred: jax.Array, on_true, on_false):
     """Tree-wise `pred ? on_true : on_false` for a scalar predicate (a per-element select under vmap)."""
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
@@ -182,17 +189,20 @@ class KinetixEnv:
         return EnvState(level=level, timestep=jnp.asarray(0, jnp.int32),
                         last_distance=goal_distance(level).astype(jnp.float32))
 
+    @_static_self
     def reset(self, key: jax.Array, params: EnvParams | None = None):
         """(obs, state) of a fresh episode."""
         state = self.initial_state(key, params)
         return self.observe(state), state
 
+    @_static_self
     def step_no_reset(self, key: jax.Array, state: EnvState, action, params: EnvParams | None = None):
         """(obs, state, reward, terminated, truncated, info) without auto-reset; `key` is unused (the physics is
         deterministic) and kept for a uniform signature."""
         next_state, reward, terminated, truncated, info = self.transition(state, action, params)
         return self.observe(next_state), next_state, reward, terminated, truncated, info
 
+    @_static_self
     def step(self, key: jax.Array, state: EnvState, action, params: EnvParams | None = None):
         """(obs, state, reward, terminated, truncated, info); on episode end obs and state come from a reset."""
         next_state, reward, terminated, truncated, info = self.transition(state, action, params)

@@ -436,3 +436,23 @@ def test_packed_step_rejects_a_buffer_that_is_not_a_packed_step_output(env):
     obs, state = env.reset(KEY, EnvParams())
     with pytest.raises(ValueError, match="reset_compact or step_compact"):
         env.step_compact(KEY, pack((obs, state)), NOOP, params)  # (obs, state) alone: no reward, flags, info
+
+
+def test_a_python_loop_of_env_step_compiles_once_per_env():
+    """The gymnax-style loop without a jit of one's own: reset and step are jitted with the env static. Before,
+    every eager step traced and compiled the physics scan afresh (seconds each) and the process aborted in LLVM
+    after ~40 steps at m, out of memory to map compiled code."""
+    from kinetix.env import KinetixEnv
+
+    env = make_env(EnvConfig("s"), ball_over_floor(ROLE_BLUE))
+    other = make_env(EnvConfig("s"), ball_over_floor(ROLE_BLUE))
+    obs, state = env.reset(KEY)
+    before = KinetixEnv.step._cache_size()
+    wins = []
+    for t in range(6):
+        obs, state, reward, terminated, truncated, info = env.step(jax.random.PRNGKey(t), state, NOOP)
+        wins.append(bool(terminated) and float(reward) == 1.0)
+    assert KinetixEnv.step._cache_size() == before + 1  # one compile for six calls
+    other.step(KEY, other.reset(KEY)[1], NOOP)
+    assert KinetixEnv.step._cache_size() == before + 2  # another env is another static argument
+    assert any(wins)  # the ball fell onto the blue floor within the six steps

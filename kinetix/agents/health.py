@@ -28,28 +28,13 @@ import numpy as np
 
 from kinetix.agents import diagnostics, distributions
 from kinetix.agents.diagnostics import CHOICES
+from kinetix.agents.networks import DEAD_SLOPE, pre_activations, slope
 from kinetix.level import LevelFile
 
-DEAD_SLOPE = 1e-3  # below this slope a unit passes (next to) no gradient
 # entity layers (networks.EntityEncoder labels) and the observation masks of their rows
 ENTITY_ROWS = {"polygons": ("polygon_mask",), "circles": ("circle_mask",), "joints": ("joint_mask",),
                "thrusters": ("thruster_mask",),
                "mix": ("polygon_mask", "circle_mask", "joint_mask", "thruster_mask")}
-
-
-def slope(activation: str, pre: jax.Array) -> jax.Array:
-    if activation == "relu":
-        return (pre > 0).astype(pre.dtype)
-    return 1.0 - jnp.tanh(pre) ** 2
-
-
-def _layers(tree: dict) -> dict[str, jax.Array]:
-    """{label: pre-activation} from the "intermediates" collection (each sown value is a one-element tuple)."""
-    found = {}
-    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
-        label = next(p.key for p in reversed(path) if isinstance(p, jax.tree_util.DictKey))
-        found[label] = leaf
-    return found
 
 
 def _rows(label: str, pre: jax.Array, obs, live: jax.Array) -> jax.Array:
@@ -68,7 +53,7 @@ def _probe(activation: str):
         def layer_stats(obs, live):
             (outputs, _), state = network.apply({"params": params}, obs, mutable=["intermediates"])
             stats = {}
-            for label, pre in _layers(state["intermediates"]).items():
+            for label, pre in pre_activations(state["intermediates"]).items():
                 rows = _rows(label, pre, obs, live)
                 alive = (slope(activation, pre) >= DEAD_SLOPE) & rows[..., None]
                 axes = tuple(range(pre.ndim - 1))

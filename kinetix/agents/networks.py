@@ -19,7 +19,8 @@ hidden layer that way (dead on every state by 109M env steps, 44 % of them at 65
 distribution, the same on every level, that the entropy bonus then pulled to uniform (kinetix.agents.health
 measures it). A tanh unit always passes some gradient. Checkpoints from before the choice existed are relu
 (ppo.LEGACY_ACTIVATION). Each hidden layer sows its pre-activation into the "intermediates" collection under a name
-saying what it is (actor_0, critic_1, polygons_0, ...), for kinetix.agents.health; training does not collect them.
+saying what it is (actor_0, critic_1, polygons_0, ...), only collected when asked for: kinetix.agents.health reads
+every layer, and training reports the heads' dead share per update (dead_share, ppo_loss).
 """
 
 from __future__ import annotations
@@ -32,12 +33,39 @@ from kinetix.actions import policy_outputs
 
 NETWORK_TYPES = ("entity", "flat", "pixels")
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
+DEAD_SLOPE = 1e-3  # below this slope a hidden unit passes (next to) no gradient: dead on that input
 
 
 def check_activation(activation: str) -> str:
     if activation not in ACTIVATIONS:
         raise ValueError(f"unknown activation {activation!r}: use one of {', '.join(ACTIVATIONS)}")
     return activation
+
+
+def slope(activation: str, pre: jax.Array) -> jax.Array:
+    """The activation's derivative at the pre-activations `pre`."""
+    if activation == "relu":
+        return (pre > 0).astype(pre.dtype)
+    return 1.0 - jnp.tanh(pre) ** 2
+
+
+def pre_activations(intermediates: dict) -> dict[str, jax.Array]:
+    """{label: pre-activation} from a network's "intermediates" collection (each sown value is a 1-tuple)."""
+    found = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(intermediates)[0]:
+        label = next(p.key for p in reversed(path) if isinstance(p, jax.tree_util.DictKey))
+        found[label] = leaf
+    return found
+
+
+def dead_share(intermediates: dict, activation: str, head: str) -> jax.Array:
+    """The share of dead units (slope below DEAD_SLOPE on every row of the batch) in the most dead hidden layer of
+    `head` ("actor" or "critic"): 1.0 once one whole layer is dead, when that head's output no longer depends on its
+    input. Its rows are samples, so no padding is counted."""
+    shares = [(slope(activation, pre) < DEAD_SLOPE).all(axis=tuple(range(pre.ndim - 1))).mean()
+              for label, pre in sorted(pre_activations(intermediates).items())
+              if label.rsplit("_", 1)[0] == head]
+    return jnp.max(jnp.stack(shares))
 
 
 def _hidden(module: nn.Module, x: jax.Array, activation: str, label: str) -> jax.Array:

@@ -34,7 +34,7 @@ from flax.training.train_state import TrainState
 import jax2d
 from kinetix.agents import distributions, parts
 from kinetix.agents.curricula import Curriculum, Feedback
-from kinetix.agents.networks import ActorCritic, check_activation
+from kinetix.agents.networks import ActorCritic, check_activation, dead_share
 from kinetix.agents.rollout import fresh_state
 from kinetix.env import EnvParams, KinetixEnv
 
@@ -147,8 +147,11 @@ def normalise_advantages(advantages: jax.Array) -> jax.Array:
 def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, batch: Transition,
              advantages: jax.Array, targets: jax.Array):
     """The clipped PPO loss, a mean over the samples of `batch` (so parts of a minibatch average to the whole's).
-    `advantages` are already normalised over the whole minibatch (normalise_advantages)."""
-    outputs, value = network.apply({"params": params}, batch.obs)
+    `advantages` are already normalised over the whole minibatch (normalise_advantages). Besides the losses, aux
+    reports the heads' health: actor_dead / critic_dead, the share of dead units in the head's most dead hidden
+    layer on this (part of a) minibatch (networks.dead_share), 1.0 once a head no longer sees its input."""
+    (outputs, value), sown = network.apply({"params": params}, batch.obs, mutable=["intermediates"])
+    dead = {f"{head}_dead": dead_share(sown["intermediates"], config.activation, head) for head in ("actor", "critic")}
     log_prob = distributions.log_prob(outputs, batch.action, action_type)
     value_clipped = batch.value + jnp.clip(value - batch.value, -config.clip_eps, config.clip_eps)
     value_loss = 0.5 * jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2).mean()
@@ -157,7 +160,7 @@ def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, 
     actor_loss = -jnp.minimum(ratio * advantages, clipped_ratio * advantages).mean()
     entropy = distributions.entropy(outputs, action_type).mean()
     total = actor_loss + config.vf_coef * value_loss - config.ent_coef * entropy
-    return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy}
+    return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy, **dead}
 
 
 SHUFFLE_BLOCKS = 8  # env blocks the minibatch shuffle draws evenly from (see shuffle_minibatches)

@@ -437,6 +437,21 @@ def run_identity(level: str, config: TrainConfig, curriculum_name: str, curricul
             "levels": (level if level in RANDOM_LEVELS else "files") + " sha256:" + digest.hexdigest()[:16]}
 
 
+DEAD_WARNING = 0.5  # actor_dead (ppo_loss) from which `kinetix train` warns, once per sitting
+
+
+def dead_actor_warning(metrics: dict, activation: str) -> str | None:
+    """The warning for an update whose actor has a layer at least DEAD_WARNING dead, else None. Why it matters: the
+    first general run's actor died that way unnoticed (kinetix.agents.networks); only its entropy showed it, late."""
+    share = metrics.get("actor_dead", 0.0)
+    if not share >= DEAD_WARNING:
+        return None
+    recovers = "relu units dead on every input do not recover" if activation == "relu" else "saturated tanh units"
+    return (f"kinetix train: update {metrics['update']:.0f}: {share:.0%} of the units of one of the actor's hidden "
+            f"layers passed no gradient on its minibatches ({recovers}); its policy is losing its dependence on the "
+            f"state. Measure a checkpoint with python -m kinetix.agents.health")
+
+
 class StopRule:
     """When `kinetix train` ends early: a wall-clock budget, or a training solve rate held over recent updates.
 
@@ -534,11 +549,17 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=total, unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0, file=sys.stderr,
                disable=not main)
 
+    warned = []
+
     def progress(m: dict) -> None:
         rule.observe(m)
         bar.update(int(m["env_steps"]) - bar.n)
         bar.set_postfix(ret=f"{m['mean_return']:.2f}", solve=f"{m['solve_rate']:.2f}",
-                        sps=f"{m['steps_per_second']:.0f}")
+                        sps=f"{m['steps_per_second']:.0f}", dead=f"{m.get('actor_dead', 0.0):.0%}")
+        warning = None if warned or not main else dead_actor_warning(m, config.activation)
+        if warning:
+            warned.append(m["update"])
+            tqdm.write(warning, file=sys.stderr)
 
     command = "kinetix " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.record_command else None
     # The first Ctrl+C (or SIGTERM) stops after the current chunk and still writes everything; a second one aborts.

@@ -11,9 +11,11 @@ import pytest
 
 from kinetix.agents import checkpoint, health
 from kinetix.agents.networks import ActorCritic
-from kinetix.agents.ppo import TrainConfig, make_network
+from kinetix.agents.ppo import TrainConfig, Transition, make_network, ppo_loss
+from kinetix.agents.train import dead_actor_warning
 from kinetix.env import EnvConfig, make_env
 from kinetix.level import empty_level
+from kinetix.levels import load_level
 
 LEVELS = ["levels/car_right.json", "levels/thruster_maze.json", "levels/seesaw.json"]  # all m: one compile
 
@@ -106,3 +108,37 @@ def test_sown_pre_activations_do_not_change_the_parameters_or_outputs():
     for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(collected), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert state["intermediates"]  # and then they are there
+
+
+def _loss_health(config, params, samples=16):
+    """The heads' dead shares that ppo_loss reports on a minibatch of states of a random episode of car_right."""
+    level = load_level(LEVELS[0])
+    env = make_env(EnvConfig("m"), level.level)  # car_right is an m level
+    key = jax.random.key(3)
+    obs, state = env.reset(key)
+    observations = []
+    for i in range(samples):
+        observations.append(obs)
+        action = env.action_space.sample(jax.random.fold_in(key, i))
+        obs, state, *_ = env.step(jax.random.fold_in(key, 100 + i), state, action)
+    batch_obs = jax.tree.map(lambda *xs: jnp.stack(xs), *observations)
+    zeros = jnp.zeros(samples)
+    batch = Transition(batch_obs, jnp.zeros((samples, 6), jnp.int32), zeros, zeros, zeros, zeros, zeros, zeros)
+    _, aux = ppo_loss(make_network(config, "multi_discrete"), "multi_discrete", config, params, batch, zeros, zeros)
+    return float(aux["actor_dead"]), float(aux["critic_dead"])
+
+
+def test_training_reports_a_dead_actor_layer_and_warns_about_it():
+    fresh = TrainConfig(width=16, hidden=32, activation="tanh")
+    assert _loss_health(fresh, _params(fresh)[1]) == (0.0, 0.0)  # no fresh tanh unit saturates
+    config = TrainConfig(width=16, hidden=32, activation="relu")
+    params = _params(config)[1]
+    params["Heads_0"]["Dense_1"]["bias"] = jnp.full_like(params["Heads_0"]["Dense_1"]["bias"], -1e3)
+    actor, critic = _loss_health(config, params)
+    assert actor == 1.0 and critic < 1.0  # the actor's second layer is dead, the critic's trunk is not
+    half = jnp.arange(32) < 16  # half of the critic's second layer (Dense_3, Dense_4 are the critic's)
+    params["Heads_0"]["Dense_4"]["bias"] = jnp.where(half, -1e3, params["Heads_0"]["Dense_4"]["bias"])
+    assert _loss_health(config, params)[1] >= 0.5
+    assert dead_actor_warning({"update": 7, "actor_dead": 0.4}, "relu") is None
+    warning = dead_actor_warning({"update": 7, "actor_dead": 1.0}, "relu")
+    assert "update 7" in warning and "100%" in warning and "kinetix.agents.health" in warning

@@ -29,6 +29,7 @@ import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -36,12 +37,12 @@ import numpy as np
 
 import jax2d
 from kinetix.agents import checkpoint as checkpoint_module
-from kinetix.agents import curricula
+from kinetix.agents import curricula, distributions
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.policy import resolve
 from kinetix.agents.ppo import TrainConfig, make_train, rebase_schedule, saved_config_fields
 from kinetix.agents.rollout import run_episodes
-from kinetix.env import EnvParams, make_env
+from kinetix.env import EnvParams, KinetixEnv, make_env
 from kinetix.level import LevelError
 from kinetix.level_source import MIXED_SIZES, RANDOM_LEVELS, level_source
 
@@ -131,6 +132,32 @@ def random_all_groups(counts: list[int], curriculum: str | None, observation: st
                                           _group_curriculum_config(curriculum_config, g), dense_reward)
         groups.append(EnvGroup(size, env, factory(solve_rate_fn_for(env)), count, sharder(count)))
     return tuple(groups)
+
+
+def sfl_scorer(env: KinetixEnv, env_params: EnvParams, network_of: Callable[[], Any],
+               place_rows: Callable[[int], Callable | None]) -> Callable:
+    """SFL's `solve_rate_fn(key, net_params, levels (M, ...), attempts) -> (M,)` on `env`: the current policy's
+    solve rate over `attempts` sampled episodes per level. network_of(): the network (made after the curriculum
+    that holds this). place_rows(rows): how to split a batch of that many rows over the devices, or None.
+
+    Why split: the candidates are generated from replicated keys, so unsplit every device played every episode of
+    the scoring (the compiled program held the whole batch on each device), and an SFL refresh is about a third of a
+    random-all run's time on the CPU. Split, each device plays its share."""
+    def solve_rate_fn(key, net_params, levels, attempts):
+        network = network_of()
+        repeated = jax.tree.map(lambda x: jnp.repeat(x, attempts, axis=0), levels)
+        place = place_rows(jax.tree.leaves(repeated)[0].shape[0])
+        if place is not None:
+            repeated = place(repeated)
+
+        def act(k, obs):
+            outputs, _ = network.apply({"params": net_params}, jax.tree.map(lambda x: x[None], obs))
+            return distributions.sample(k, outputs, env.config.action)[0]
+
+        solved, _ = run_episodes(env, env_params, act, repeated, key, int(env_params.max_timesteps))
+        return solved.reshape(-1, attempts).mean(-1)
+
+    return solve_rate_fn
 
 
 def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, curriculum: str | None = None,
@@ -259,21 +286,11 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
 
     network_holder = {}
 
+    def place_rows(rows: int) -> Callable | None:
+        return sharder(rows) if mesh is not None and rows % jax.device_count() == 0 else None
+
     def solve_rate_fn_for(env):
-        def solve_rate_fn(key, net_params, levels, attempts):
-            from kinetix.agents import distributions
-
-            network = network_holder["network"]
-            repeated = jax.tree.map(lambda x: jnp.repeat(x, attempts, axis=0), levels)
-
-            def act(k, obs):
-                outputs, _ = network.apply({"params": net_params}, jax.tree.map(lambda x: x[None], obs))
-                return distributions.sample(k, outputs, env.config.action)[0]
-
-            solved, _ = run_episodes(env, env_params, act, repeated, key, int(env_params.max_timesteps))
-            return solved.reshape(-1, attempts).mean(-1)
-
-        return solve_rate_fn
+        return sfl_scorer(env, env_params, lambda: network_holder["network"], place_rows)
 
     groups = None
     if group_sizes is not None:

@@ -62,3 +62,51 @@ def test_sharded_update_equals_single_device_update():
     np.testing.assert_allclose(sharded["value_loss"], single["value_loss"], rtol=1e-4, atol=1e-6)
     for a, b in zip(single["params"], sharded["params"], strict=True):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
+
+
+SCORING = textwrap.dedent("""
+    import json
+    import jax
+    import jax2d
+    import numpy as np
+    from kinetix.jaxcache import enable_compilation_cache
+    enable_compilation_cache()
+    from kinetix.agents.ppo import TrainConfig, make_network
+    from kinetix.agents.sharding import batch_sharder, local_mesh
+    from kinetix.agents.train import sfl_scorer
+    from kinetix.env import EnvConfig, EnvParams, make_env
+    from kinetix.generate import sample_level
+
+    assert jax.local_device_count() == 2, jax.devices()
+    env = make_env(EnvConfig("s"), lambda key: sample_level(key, "s"))
+    params = EnvParams(max_timesteps=8)
+    network = make_network(TrainConfig(width=16, hidden=32), "multi_discrete")
+    obs, _ = env.reset(jax.random.key(0))
+    net_params = network.init(jax.random.key(1), jax.tree.map(lambda x: x[None], obs))["params"]
+    mesh = local_mesh()
+    results = {}
+    for name, place_rows in (("single", lambda rows: None), ("sharded", lambda rows: batch_sharder(mesh, rows))):
+        score = sfl_scorer(env, params, lambda: network, place_rows)
+
+        @jax2d.jit
+        def scored(key, net_params):
+            levels = jax.vmap(env.reset_fn)(jax.random.split(key, 6))
+            return score(key, net_params, levels, 4)
+
+        p = scored(jax.random.key(2), net_params)
+        results[name] = {"devices": len(p.sharding.device_set), "p": np.asarray(p).tolist()}
+    print(json.dumps(results))
+""")
+
+
+@pytest.mark.slow  # a fresh process compiling for two devices
+def test_sfl_scoring_splits_its_episodes_over_the_devices():
+    """SFL's candidates come from replicated keys: unless placed, every device plays every scoring episode."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu",
+               PYTHONPATH=str(ROOT))
+    proc = subprocess.run([sys.executable, "-c", SCORING], capture_output=True, text=True, env=env, cwd=ROOT,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert results["single"]["devices"] == 1 and results["sharded"]["devices"] == 2
+    assert results["sharded"]["p"] == results["single"]["p"] and len(results["single"]["p"]) == 6

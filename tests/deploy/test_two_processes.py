@@ -152,6 +152,9 @@ def test_two_processes_behind_nginx_share_everything_and_survive_a_kill(browser,
 
         # Two tabs through nginx, both on A (B is not up yet): one draws (its draft), one plays the saved level.
         context = browser.new_context(viewport={"width": 1280, "height": 800})
+        # Page loads, not 30 s: in CI (both cores busy with the other test worker) A once took over 30 s to answer
+        # a play page through nginx; nginx logged nothing but B's refusals. The tab's readiness is checked after.
+        context.set_default_navigation_timeout(90_000)
         drawing, player = context.new_page(), context.new_page()
         drawing.goto(public)
         wait_js(drawing, READY)

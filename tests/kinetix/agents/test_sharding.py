@@ -46,14 +46,19 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
-@pytest.mark.slow  # a fresh process compiling for two devices: about a minute on an idle 2-core machine
-def test_sharded_update_equals_single_device_update():
+def _on_two_devices(script: str) -> dict:
+    """The JSON object `script` prints last, run in a fresh process with two CPU devices."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu",
                PYTHONPATH=str(ROOT))
-    proc = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env, cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=ROOT,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    results = json.loads(proc.stdout.strip().splitlines()[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow  # a fresh process compiling for two devices: about a minute on an idle 2-core machine
+def test_sharded_update_equals_single_device_update():
+    results = _on_two_devices(SCRIPT)
     single, sharded = results["single"], results["sharded"]
     assert single["devices"] == 1 and sharded["devices"] == 2  # the env batch really was split
     assert single["episodes"] == sharded["episodes"] > 0
@@ -102,11 +107,6 @@ SCORING = textwrap.dedent("""
 @pytest.mark.slow  # a fresh process compiling for two devices
 def test_sfl_scoring_splits_its_episodes_over_the_devices():
     """SFL's candidates come from replicated keys: unless placed, every device plays every scoring episode."""
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu",
-               PYTHONPATH=str(ROOT))
-    proc = subprocess.run([sys.executable, "-c", SCORING], capture_output=True, text=True, env=env, cwd=ROOT,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    results = json.loads(proc.stdout.strip().splitlines()[-1])
+    results = _on_two_devices(SCORING)
     assert results["single"]["devices"] == 1 and results["sharded"]["devices"] == 2
     assert results["sharded"]["p"] == results["single"]["p"] and len(results["single"]["p"]) == 6

@@ -263,6 +263,10 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--activation", choices=["tanh", "relu"], default=None,
                         help="hidden layers' activation (default: tanh; relu units can die for good, see "
                              "kinetix.agents.networks)")
+    parser.add_argument("--pooled-norm", action=argparse.BooleanOptionalAction, default=None,
+                        help="entity network: a LayerNorm on the pooled entity summary before the actor and critic "
+                             "(default: on; without it the summary grows in training and saturates the heads, see "
+                             "kinetix.agents.networks)")
     parser.add_argument("--update-epochs", type=positive_int, default=None, help="PPO epochs per update (default: 4)")
     parser.add_argument("--num-minibatches", type=positive_int, default=None,
                         help="PPO minibatches per epoch (default: 4)")

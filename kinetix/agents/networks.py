@@ -21,6 +21,15 @@ measures it). A tanh unit always passes some gradient. Checkpoints from before t
 (ppo.LEGACY_ACTIVATION). Each hidden layer sows its pre-activation into the "intermediates" collection under a name
 saying what it is (actor_0, critic_1, polygons_0, ...), only collected when asked for: kinetix.agents.health reads
 every layer, and training reports the heads' dead share per update (dead_share, ppo_loss).
+
+`pooled_norm` (entity network; the default for new networks) puts a LayerNorm on the pooled summary before the
+heads. Without it the summary is the unnormalised residual stream of the attention layer, and it grows as training
+goes on: in the tanh run kinetix/agents/general/sfl-tanh the pooled features' rms on levels/ went 1.3, 1.7, 2.5 at
+5.8M, 11.5M and 22.7M env steps, the mean |pre-activation| of the heads' first layers 1.5-1.9, 2.2-2.8, 4.2-4.4,
+so those tanh units saturated (live share 0.58, a growing share of critic units dead in training). A normalised
+summary keeps the heads' inputs at unit scale whatever the encoder's weights do (the final LayerNorm of a
+pre-norm transformer). The flat and pixel networks pool nothing and ignore it. Networks saved before the field
+existed have none (ppo.LEGACY_FIELDS).
 """
 
 from __future__ import annotations
@@ -117,6 +126,7 @@ class EntityEncoder(nn.Module):
     width: int = 64
     heads: int = 4
     activation: str = "tanh"
+    pooled_norm: bool = True
 
     @nn.compact
     def __call__(self, obs: dict) -> jax.Array:
@@ -138,7 +148,8 @@ class EntityEncoder(nn.Module):
             nn.LayerNorm()(tokens), mask=attend[None])
         tokens = tokens + mixed
         tokens = tokens + _mlp(self, nn.LayerNorm()(tokens), (w, w), act, "mix", final_activation=False)
-        return _masked_pool(tokens, mask)
+        pooled = _masked_pool(tokens, mask)
+        return nn.LayerNorm()(pooled) if self.pooled_norm else pooled
 
 
 class ActorCritic(nn.Module):
@@ -149,6 +160,7 @@ class ActorCritic(nn.Module):
     width: int = 64
     hidden: int = 128
     activation: str = "tanh"
+    pooled_norm: bool = True  # entity network only: a LayerNorm on the pooled summary (see the module docstring)
 
     @nn.compact
     def __call__(self, obs) -> tuple[jax.Array, jax.Array]:
@@ -156,7 +168,8 @@ class ActorCritic(nn.Module):
         if self.network == "entity":
             # intermediates (only collected when asked for) get the batch axis like the observations
             features = nn.vmap(EntityEncoder, variable_axes={"params": None, "intermediates": 0},
-                               split_rngs={"params": False})(width=self.width, activation=act)(obs)
+                               split_rngs={"params": False})(width=self.width, activation=act,
+                                                                pooled_norm=self.pooled_norm)(obs)
         elif self.network == "flat":
             features = _mlp(self, obs, (self.hidden, self.hidden), act, "flat")
         elif self.network == "pixels":

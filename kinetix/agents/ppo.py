@@ -59,6 +59,7 @@ class TrainConfig:
     hidden: int = 128
     updates_per_call: int = 4  # updates per jitted chunk in `run`
     activation: str = "tanh"  # of the hidden layers: tanh or relu (kinetix.agents.networks says why tanh)
+    pooled_norm: bool = True  # entity network: LayerNorm on the pooled summary (kinetix.agents.networks says why)
 
     def __post_init__(self):
         for name in ("total_timesteps", "num_envs", "num_steps", "update_epochs", "num_minibatches",
@@ -72,6 +73,8 @@ class TrainConfig:
                 or not 0 <= self.ent_coef < math.inf:
             raise ValueError(f"ent_coef must be a finite number >= 0, got {self.ent_coef!r}")
         check_activation(self.activation)
+        if not isinstance(self.pooled_norm, bool):
+            raise ValueError(f"pooled_norm must be true or false, got {self.pooled_norm!r}")
         if (self.num_envs * self.num_steps) % self.num_minibatches:
             raise ValueError(f"num_envs * num_steps ({self.num_envs * self.num_steps}) must be divisible by "
                              f"num_minibatches ({self.num_minibatches})")
@@ -126,17 +129,20 @@ def compute_gae(reward: jax.Array, value: jax.Array, bootstrap_value: jax.Array,
 
 
 LEGACY_ACTIVATION = "relu"  # the activation of every network saved before TrainConfig had the field
+# what every network saved before TrainConfig had a field was built with, where that differs from today's default
+LEGACY_FIELDS = {"activation": LEGACY_ACTIVATION, "pooled_norm": False}
 
 
 def saved_config_fields(fields: dict) -> dict:
-    """TrainConfig fields as a checkpoint or a run's state recorded them, with the activation of their time filled
-    in where they predate the field (so an old relu agent loads as relu, not as the tanh default)."""
-    return {"activation": LEGACY_ACTIVATION, **fields}
+    """TrainConfig fields as a checkpoint or a run's state recorded them, with the architecture of their time filled
+    in where they predate a field (so an old relu agent loads as relu, not as the tanh default, and one without a
+    pooled LayerNorm loads without one)."""
+    return {**LEGACY_FIELDS, **fields}
 
 
 def make_network(config: TrainConfig, action_type: str) -> ActorCritic:
     return ActorCritic(network=config.network, action=action_type, width=config.width, hidden=config.hidden,
-                       activation=config.activation)
+                       activation=config.activation, pooled_norm=config.pooled_norm)
 
 
 def normalise_advantages(advantages: jax.Array) -> jax.Array:

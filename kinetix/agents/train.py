@@ -212,7 +212,8 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         if ckpt is None:
             raise CheckpointError(f"--init {init}: only a trained agent (general or a checkpoint) can be fine-tuned")
         config = dataclasses.replace(config, network=ckpt.train_config.network, width=ckpt.train_config.width,
-                                     hidden=ckpt.train_config.hidden, activation=ckpt.train_config.activation)
+                                     hidden=ckpt.train_config.hidden, activation=ckpt.train_config.activation,
+                                     pooled_norm=ckpt.train_config.pooled_norm)
         observation, action = ckpt.env["observation"], ckpt.env["action"]
         init_params = jax.tree.map(jnp.asarray, ckpt.params)
     env, env_params, factory, curriculum_name = setup_levels(level, curriculum, observation, action,
@@ -502,7 +503,7 @@ class StopRule:
 
 # `kinetix train` options that are TrainConfig fields of the same name
 CONFIG_OPTIONS = ("num_envs", "num_steps", "updates_per_call", "lr", "ent_coef", "network", "width", "hidden",
-                  "update_epochs", "num_minibatches", "activation")
+                  "update_epochs", "num_minibatches", "activation", "pooled_norm")
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from kinetix.agents import checkpoint, health
-from kinetix.agents.networks import ActorCritic
+from kinetix.agents.networks import ActorCritic, EntityEncoder
 from kinetix.agents.ppo import TrainConfig, Transition, make_network, ppo_loss
 from kinetix.agents.train import dead_actor_warning
 from kinetix.env import EnvConfig, make_env
@@ -142,3 +142,20 @@ def test_training_reports_a_dead_actor_layer_and_warns_about_it():
     assert dead_actor_warning({"update": 7, "actor_dead": 0.4}, "relu") is None
     warning = dead_actor_warning({"update": 7, "actor_dead": 1.0}, "relu")
     assert "update 7" in warning and "100%" in warning and "kinetix.agents.health" in warning
+
+
+def test_the_pooled_norm_keeps_the_heads_inputs_at_unit_scale_however_the_encoder_grows():
+    """The summary the heads read: with pooled_norm it has unit spread even when the encoder's weights grow 10x (as
+    a long run's residual stream does); without it, it grows with them and would saturate the heads' tanh units."""
+    env = make_env(EnvConfig("m"), load_level(LEVELS[0]).level)  # car_right, an m level
+    obs, _ = env.reset(jax.random.key(0))
+
+    def spread(pooled_norm: bool, scale: float) -> float:
+        encoder = EntityEncoder(width=16, pooled_norm=pooled_norm)
+        params = encoder.init(jax.random.key(1), obs)["params"]
+        params = jax.tree_util.tree_map_with_path(
+            lambda path, x: x * scale if "kernel" in jax.tree_util.keystr(path) else x, params)
+        return float(jnp.std(encoder.apply({"params": params}, obs)))
+
+    assert abs(spread(True, 1.0) - 1.0) < 1e-3 and abs(spread(True, 10.0) - 1.0) < 1e-3
+    assert spread(False, 10.0) > 5 * spread(False, 1.0)

@@ -555,10 +555,11 @@ def test_a_run_in_size_groups_keeps_its_groups_on_other_devices(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_run_saved_before_the_activation_field_resumes_as_the_relu_run_it_was(tmp_path):
-    """States written before TrainConfig had `activation` record no activation; their networks were relu, and a
-    resume must go on with relu (not the tanh default) and equal the uninterrupted relu run."""
-    relu = {**RUN, "config": dataclasses.replace(CONFIG, activation="relu")}
+def test_a_run_saved_before_the_architecture_fields_resumes_as_the_run_it_was(tmp_path):
+    """States written before TrainConfig had `activation` and `pooled_norm` record neither; their networks were
+    relu without a pooled LayerNorm, and a resume must go on so (not with today's defaults) and equal the
+    uninterrupted run."""
+    relu = {**RUN, "config": dataclasses.replace(CONFIG, activation="relu", pooled_norm=False)}
     whole = tmp_path / "whole"
     train_agent("random-s", whole, **relu, save_state=True)
     out = tmp_path / "old"
@@ -567,9 +568,10 @@ def test_a_run_saved_before_the_activation_field_resumes_as_the_relu_run_it_was(
                 progress=lambda m: chunks.append(m) if m["update"] % 2 == 0 else None)
     meta, arrays, _ = resume.load_latest(out)
     for record in (meta["arguments"]["config"], meta["run"]["train"]):
-        del record["activation"]
+        del record["activation"], record["pooled_norm"]
     resume.save(out, 4, {k: v for k, v in meta.items() if k not in ("format", "version")}, arrays)
     assert "activation" not in resume.load_latest(out)[0]["run"]["train"]
     assert main(["train", "--resume", str(out)]) == 0
     assert_same_run(out, whole)
-    assert json.loads((out / "checkpoint" / "config.json").read_text())["train"]["activation"] == "relu"
+    saved = json.loads((out / "checkpoint" / "config.json").read_text())["train"]
+    assert saved["activation"] == "relu" and saved["pooled_norm"] is False

@@ -149,7 +149,9 @@ class EntityEncoder(nn.Module):
         tokens = tokens + mixed
         tokens = tokens + _mlp(self, nn.LayerNorm()(tokens), (w, w), act, "mix", final_activation=False)
         pooled = _masked_pool(tokens, mask)
-        return nn.LayerNorm()(pooled) if self.pooled_norm else pooled
+        # the two-pass variance: with flax's default E[x^2] - E[x]^2 the norm's backward cancelled rounding up to
+        # 0.25 % relative differences in Adam's moments between 2 processes and 1 (test_multihost's default run)
+        return nn.LayerNorm(use_fast_variance=False)(pooled) if self.pooled_norm else pooled
 
 
 class ActorCritic(nn.Module):

@@ -72,8 +72,10 @@ def test_a_grouped_update_on_one_minibatch_equals_the_update_of_the_whole_batch(
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
         moved = max(moved, float(jnp.abs(a - before).max()))
     assert moved > 1e-5  # the update did change the parameters
+    # atol: on a first update the actor loss is -mean(normalised advantages), 0 up to the rounding of a sum of 72
+    # O(1) terms (1e-7 apart in CI once, -9.5e-8 against 2.6e-8)
     for name in ("value_loss", "actor_loss", "entropy"):
-        np.testing.assert_allclose(float(group_losses[name]), float(losses[name]), rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(float(group_losses[name]), float(losses[name]), rtol=1e-4, atol=1e-6)
 
 
 def test_groups_step_their_own_size_class_and_train_one_network():

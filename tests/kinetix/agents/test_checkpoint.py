@@ -114,17 +114,24 @@ def test_entity_policy_runs_on_every_size(trained):
         assert action.shape == (6,) and jnp.isfinite(value)
 
 
-def test_a_checkpoint_from_before_the_activation_field_loads_as_relu(env, tmp_path):
-    """Every network saved before TrainConfig had `activation` was relu; its config.json has no such field."""
-    config = TrainConfig(width=16, hidden=32, activation="relu")
+def _saved_without(field: str, config: TrainConfig, env, where):
+    """A checkpoint of a fresh `config` network whose config.json lacks `field`, as files from before it existed;
+    returns (path, network, params, obs, batch)."""
     network = make_network(config, "multi_discrete")
     obs, _ = env.reset(jax.random.key(0))
     batch = jax.tree.map(lambda x: x[None], obs)
     params = network.init(jax.random.key(1), batch)["params"]
-    path = checkpoint.save(tmp_path / "old", params, config, env.config)
+    path = checkpoint.save(where, params, config, env.config)
     document = json.loads((path / "config.json").read_text())
-    del document["train"]["activation"]
+    del document["train"][field]
     (path / "config.json").write_text(json.dumps(document))
+    return path, network, params, obs, batch
+
+
+def test_a_checkpoint_from_before_the_activation_field_loads_as_relu(env, tmp_path):
+    """Every network saved before TrainConfig had `activation` was relu; its config.json has no such field."""
+    path, network, params, obs, batch = _saved_without(
+        "activation", TrainConfig(width=16, hidden=32, activation="relu"), env, tmp_path / "old")
     assert checkpoint.load(path).train_config.activation == "relu"
     _, value = load_policy(str(path), env, deterministic=True).act(jax.random.key(0), obs)
     np.testing.assert_allclose(value, network.apply({"params": params}, batch)[1][0], rtol=1e-6)
@@ -135,15 +142,8 @@ def test_a_checkpoint_from_before_the_activation_field_loads_as_relu(env, tmp_pa
 def test_a_checkpoint_from_before_the_pooled_norm_field_loads_without_the_norm(env, tmp_path):
     """Networks saved before TrainConfig had `pooled_norm` have no LayerNorm on the pooled summary (the tanh run
     sfl-tanh among them); their config.json has no such field, and they must load and act as they were saved."""
-    config = TrainConfig(width=16, hidden=32, pooled_norm=False)
-    network = make_network(config, "multi_discrete")
-    obs, _ = env.reset(jax.random.key(0))
-    batch = jax.tree.map(lambda x: x[None], obs)
-    params = network.init(jax.random.key(1), batch)["params"]
-    path = checkpoint.save(tmp_path / "old", params, config, env.config)
-    document = json.loads((path / "config.json").read_text())
-    del document["train"]["pooled_norm"]
-    (path / "config.json").write_text(json.dumps(document))
+    path, network, params, obs, batch = _saved_without(
+        "pooled_norm", TrainConfig(width=16, hidden=32, pooled_norm=False), env, tmp_path / "old")
     assert checkpoint.load(path).train_config.pooled_norm is False
     _, value = load_policy(str(path), env, deterministic=True).act(jax.random.key(0), obs)
     np.testing.assert_allclose(value, network.apply({"params": params}, batch)[1][0], rtol=1e-6)

@@ -140,9 +140,12 @@ def saved_config_fields(fields: dict) -> dict:
     return {**LEGACY_FIELDS, **fields}
 
 
+# the TrainConfig fields that shape the network (ActorCritic's fields of the same names): what a checkpoint fixes
+ARCHITECTURE = ("network", "width", "hidden", "activation", "pooled_norm")
+
+
 def make_network(config: TrainConfig, action_type: str) -> ActorCritic:
-    return ActorCritic(network=config.network, action=action_type, width=config.width, hidden=config.hidden,
-                       activation=config.activation, pooled_norm=config.pooled_norm)
+    return ActorCritic(action=action_type, **{field: getattr(config, field) for field in ARCHITECTURE})
 
 
 def normalise_advantages(advantages: jax.Array) -> jax.Array:

@@ -40,7 +40,7 @@ from kinetix.agents import checkpoint as checkpoint_module
 from kinetix.agents import curricula, distributions
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.policy import resolve
-from kinetix.agents.ppo import TrainConfig, make_train, rebase_schedule, saved_config_fields
+from kinetix.agents.ppo import ARCHITECTURE, TrainConfig, make_train, rebase_schedule, saved_config_fields
 from kinetix.agents.rollout import run_episodes
 from kinetix.env import EnvParams, KinetixEnv, make_env
 from kinetix.level import LevelError
@@ -211,9 +211,7 @@ def train_agent(level: str, out: str | os.PathLike, *, steps: int = 1_000_000, c
         ckpt = checkpoint_module.load(resolve(init)) if init not in ("noop", "random") else None
         if ckpt is None:
             raise CheckpointError(f"--init {init}: only a trained agent (general or a checkpoint) can be fine-tuned")
-        config = dataclasses.replace(config, network=ckpt.train_config.network, width=ckpt.train_config.width,
-                                     hidden=ckpt.train_config.hidden, activation=ckpt.train_config.activation,
-                                     pooled_norm=ckpt.train_config.pooled_norm)
+        config = dataclasses.replace(config, **{field: getattr(ckpt.train_config, field) for field in ARCHITECTURE})
         observation, action = ckpt.env["observation"], ckpt.env["action"]
         init_params = jax.tree.map(jnp.asarray, ckpt.params)
     env, env_params, factory, curriculum_name = setup_levels(level, curriculum, observation, action,

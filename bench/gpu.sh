@@ -2,7 +2,7 @@
 # The GPU session's measurements in one call of at most 8 minutes (issue 36): tests/test_gpu.py, `kinetix bench
 # env|engine` at s, m, l x 256, 2,048, 16,384 and 65,536 (and the control-flow A/B at 2,048, profiled),
 # `kinetix bench train` at 1,024 and 8,192 envs, then the general agent's run (issue 33's 200M-step SFL run,
-# kinetix/agents/general/sfl-tanh; TRAIN_RUNS names others), resumed at a GPU's batch (TRAIN_ARGS, default
+# kinetix/agents/general/sfl-ln; TRAIN_RUNS names others), resumed at a GPU's batch (TRAIN_ARGS, default
 # "--num-envs 4096 --num-minibatches 32": 8x the envs, the same samples per minibatch), until the budget ends. Results:
 # $OUT/results.jsonl, $OUT/gpu.png, $OUT/tests.log, $OUT/log.txt, and two archives (the resumed runs, compacted;
 # worker, training and profile logs). kinetix/bench/gpu.py says how it is planned.
@@ -38,7 +38,7 @@ LOGS=$(mktemp -d /tmp/kinetix-gpu-logs.XXXX)
 RUNS=()  # TRAIN=0 (the default with --quick, which would train the repository's run on a CPU): no training
 TRAIN_ARGS=${TRAIN_ARGS-"--num-envs 4096 --num-minibatches 32"}
 if [[ "${TRAIN:-$(( ${#QUICK[@]} ? 0 : 1 ))}" != 0 ]]; then
-  read -ra RUNS <<<"${TRAIN_RUNS:-kinetix/agents/general/sfl-tanh}"
+  read -ra RUNS <<<"${TRAIN_RUNS:-kinetix/agents/general/sfl-ln}"
 fi
 {
   date -u; git log -1 --format='commit %H %s' 2>/dev/null || true

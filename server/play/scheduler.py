@@ -159,15 +159,15 @@ class PlayScheduler:
         """[(session, plan, (state, result))] for the plays of one stepper that stepped; the failed ones are ended.
 
         One batched call first; if it raises, each play steps alone, so one bad play cannot take the others down.
+        A lone play that fails is stepped alone again too (its state is a value, so that has no side effect): a
+        play's failure is then always the single step's error, logged once whether or not it shared a tick.
         """
         try:
             results = stepper.step_many([p.state for _, p in items], [p.action for _, p in items],
                                         [p.params for _, p in items])
             return [(session, plan, result) for (session, plan), result in zip(items, results, strict=True)]
-        except Exception as error:
-            if len(items) == 1:
-                self._fail(items[0][0], items[0][1], "stepping", error)
-                return []
+        except Exception:
+            pass  # which play failed, and how, is found and reported by stepping each alone below
         stepped = []
         for session, plan in items:
             try:

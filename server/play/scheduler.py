@@ -166,14 +166,16 @@ class PlayScheduler:
             results = stepper.step_many([p.state for _, p in items], [p.action for _, p in items],
                                         [p.params for _, p in items])
             return [(session, plan, result) for (session, plan), result in zip(items, results, strict=True)]
-        except Exception:
-            pass  # which play failed, and how, is found and reported by stepping each alone below
+        except Exception as error:
+            batch_error = error  # which play failed, and how, is found and reported by stepping each alone below
         stepped = []
         for session, plan in items:
             try:
                 stepped.append((session, plan, stepper.step(plan.state, plan.action, plan.params)))
             except Exception as error:
                 self._fail(session, plan, "stepping", error)
+        if len(stepped) == len(items):  # no play is at fault: the batched path itself is, and must not hide
+            self._log_once("a batched step failed where each play stepped alone", batch_error)
         return stepped
 
     def _drop(self, session: Playable) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
 import jax
@@ -111,3 +112,28 @@ def test_the_scheduler_steps_sessions_due_together_in_one_batched_call(stepper_a
         scheduler.close()
     assert [s.done for s in sessions] == [[1, 2, 3], [1, 2, 3]]
     assert 2 in calls and sum(calls) == 6  # due together, both stepped in one call
+
+
+def test_a_broken_batched_step_falls_back_to_single_steps_and_is_logged_once(stepper_and_levels, monkeypatch,
+                                                                               caplog):
+    # A fault in the batched path itself (every play steps fine alone) must neither stop the plays nor go unseen.
+    stepper, files = stepper_and_levels
+
+    def broken(*args):
+        raise RuntimeError("injected: the batched path is broken")
+
+    monkeypatch.setattr(stepper, "step_many", broken)
+    caplog.set_level(logging.WARNING, logger="server.play.scheduler")
+    sessions = [_FakeSession(stepper, *stepper.start(f), ticks=3) for f in files]
+    scheduler = PlayScheduler()
+    try:
+        for session in sessions:
+            scheduler.add(session)
+        deadline = time.monotonic() + 30
+        while scheduler.playing() and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        scheduler.close()
+    assert [s.done for s in sessions] == [[1, 2, 3], [1, 2, 3]]
+    errors = [r for r in caplog.records if r.name == "server.play.scheduler" and r.levelno == logging.ERROR]
+    assert len(errors) == 1 and "batched step failed" in errors[0].getMessage(), [r.getMessage() for r in errors]

@@ -95,11 +95,8 @@ class _FakeSession:
         self.state = state
 
 
-def test_the_scheduler_steps_sessions_due_together_in_one_batched_call(stepper_and_levels, monkeypatch):
-    stepper, files = stepper_and_levels
-    calls = []
-    real = stepper.step_many
-    monkeypatch.setattr(stepper, "step_many", lambda *a: calls.append(len(a[0])) or real(*a))
+def _play_three_ticks_each(stepper, files) -> list[_FakeSession]:
+    """A scheduler playing one fake session per level for 3 ticks, run until all are done (30 s at most)."""
     sessions = [_FakeSession(stepper, *stepper.start(f), ticks=3) for f in files]
     scheduler = PlayScheduler()
     try:
@@ -110,6 +107,15 @@ def test_the_scheduler_steps_sessions_due_together_in_one_batched_call(stepper_a
             time.sleep(0.01)
     finally:
         scheduler.close()
+    return sessions
+
+
+def test_the_scheduler_steps_sessions_due_together_in_one_batched_call(stepper_and_levels, monkeypatch):
+    stepper, files = stepper_and_levels
+    calls = []
+    real = stepper.step_many
+    monkeypatch.setattr(stepper, "step_many", lambda *a: calls.append(len(a[0])) or real(*a))
+    sessions = _play_three_ticks_each(stepper, files)
     assert [s.done for s in sessions] == [[1, 2, 3], [1, 2, 3]]
     assert 2 in calls and sum(calls) == 6  # due together, both stepped in one call
 
@@ -124,16 +130,7 @@ def test_a_broken_batched_step_falls_back_to_single_steps_and_is_logged_once(ste
 
     monkeypatch.setattr(stepper, "step_many", broken)
     caplog.set_level(logging.WARNING, logger="server.play.scheduler")
-    sessions = [_FakeSession(stepper, *stepper.start(f), ticks=3) for f in files]
-    scheduler = PlayScheduler()
-    try:
-        for session in sessions:
-            scheduler.add(session)
-        deadline = time.monotonic() + 30
-        while scheduler.playing() and time.monotonic() < deadline:
-            time.sleep(0.01)
-    finally:
-        scheduler.close()
+    sessions = _play_three_ticks_each(stepper, files)
     assert [s.done for s in sessions] == [[1, 2, 3], [1, 2, 3]]
     errors = [r for r in caplog.records if r.name == "server.play.scheduler" and r.levelno == logging.ERROR]
     assert len(errors) == 1 and "batched step failed" in errors[0].getMessage(), [r.getMessage() for r in errors]

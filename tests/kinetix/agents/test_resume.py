@@ -16,11 +16,12 @@ import jax
 import numpy as np
 import pytest
 
+import jax2d
 from kinetix.agents import resume
 from kinetix.agents.checkpoint import CheckpointError
 from kinetix.agents.curricula import NEG, CurriculumConfig
-from kinetix.agents.ppo import TrainConfig
-from kinetix.agents.train import batch_offset, checkpoint_due, replan, train_agent
+from kinetix.agents.ppo import TrainConfig, make_train
+from kinetix.agents.train import batch_offset, checkpoint_due, replan, settled, setup_levels, train_agent
 from kinetix.cli import main
 
 # Tiny and short: 4 chunks of 2 updates of 4 envs x 8 steps on random s levels with PLR (its buffer is filled
@@ -150,6 +151,18 @@ def test_resume_with_another_configuration_is_refused(reference, tmp_path, capsy
         train_agent("random-s", reference, **dict(RUN, seed=4), resume=True)
     with pytest.raises(CheckpointError, match="levels: 'random-s"):
         train_agent("random-m", reference, **RUN, resume=True)
+
+
+def test_a_restored_runner_lowers_to_the_program_of_a_fresh_one():
+    """A resume finds the first sitting's compiled chunk in the persistent cache (which keys on the lowered program):
+    settled, a fresh runner and one restored from its saved arrays lower the chunk to the same program. Unsettled,
+    the fresh one's weakly typed scalars and uncommitted arrays gave another, and every resume compiled afresh."""
+    env, params, factory, _ = setup_levels("levels/cartpole.json", None, "entity", "multi_discrete",
+                                           CurriculumConfig(), None)
+    trainer = make_train(dataclasses.replace(CONFIG, total_timesteps=STEPS), env, params, factory(None))
+    fresh = jax2d.jit(trainer.init)(jax.random.key(0))
+    restored = resume.restore(fresh, resume.flatten(resume.host_tree(fresh)))
+    assert trainer.run.lower(settled(fresh)).as_text() == trainer.run.lower(settled(restored)).as_text()
 
 
 def test_resume_without_state_is_a_clear_error(tmp_path, capsys):

@@ -404,9 +404,9 @@ def settled(runner: Any) -> Any:
     Why: the chunk program is compiled for its arguments' types and placements, and the persistent compilation
     cache keys on the lowered program. A fresh runner holds weakly typed scalars (the step count, the env params'
     Python floats) and uncommitted arrays; a restored one holds neither. Unsettled, every `--resume` compiled its
-    chunk program afresh instead of finding the first sitting's in the cache: 133 s on this 2-core machine for a
-    random-all SFL run of 4 envs, 19 s for levels/cartpole.json (the same numbers either way: only the program's
-    argument attributes differed)."""
+    chunk program afresh instead of finding the first sitting's in the cache: 132 s on this 2-core machine for a
+    random-all SFL run of 4 envs at a constant rate, 19 s for levels/cartpole.json (the same numbers either way:
+    only the program's argument attributes differed)."""
     def settle(leaf):
         strong = jnp.asarray(leaf, dtype=leaf.dtype) if getattr(leaf, "weak_type", False) else leaf
         return jax.device_put(strong, leaf.sharding)

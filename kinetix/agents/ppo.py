@@ -158,7 +158,11 @@ def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, 
     """The clipped PPO loss, a mean over the samples of `batch` (so parts of a minibatch average to the whole's).
     `advantages` are already normalised over the whole minibatch (normalise_advantages). Besides the losses, aux
     reports the heads' health: actor_dead / critic_dead, the share of dead units in the head's most dead hidden
-    layer on this (part of a) minibatch (networks.dead_share), 1.0 once a head no longer sees its input."""
+    layer on this (part of a) minibatch (networks.dead_share), 1.0 once a head no longer sees its input; and how far
+    the policy has moved from the one that collected the batch: approx_kl, the estimator mean((r - 1) - log r) of
+    KL(old || new) with r the probability ratio (never negative, unlike mean(-log r)), and clip_frac, the share of
+    samples whose ratio is outside the clip range. Both grow with the step size: they are what to read when the
+    learning rate is in question."""
     (outputs, value), sown = network.apply({"params": params}, batch.obs, mutable=["intermediates"])
     dead = {f"{head}_dead": dead_share(sown["intermediates"], config.activation, head) for head in ("actor", "critic")}
     log_prob = distributions.log_prob(outputs, batch.action, action_type)
@@ -169,7 +173,10 @@ def ppo_loss(network: nn.Module, action_type: str, config: TrainConfig, params, 
     actor_loss = -jnp.minimum(ratio * advantages, clipped_ratio * advantages).mean()
     entropy = distributions.entropy(outputs, action_type).mean()
     total = actor_loss + config.vf_coef * value_loss - config.ent_coef * entropy
-    return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy, **dead}
+    moved = jax.lax.stop_gradient(log_prob - batch.log_prob)
+    drift = {"approx_kl": (jnp.expm1(moved) - moved).mean(),
+             "clip_frac": (jnp.abs(ratio - 1) > config.clip_eps).astype(jnp.float32).mean()}
+    return total, {"value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy, **dead, **drift}
 
 
 SHUFFLE_BLOCKS = 8  # env blocks the minibatch shuffle draws evenly from (see shuffle_minibatches)

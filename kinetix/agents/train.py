@@ -588,7 +588,8 @@ def run(args: argparse.Namespace) -> int:
         rule.observe(m)
         bar.update(int(m["env_steps"]) - bar.n)
         bar.set_postfix(ret=f"{m['mean_return']:.2f}", solve=f"{m['solve_rate']:.2f}",
-                        sps=f"{m['steps_per_second']:.0f}", dead=f"{m.get('actor_dead', 0.0):.0%}")
+                        sps=f"{m['steps_per_second']:.0f}", kl=f"{m.get('approx_kl', 0.0):.4f}",
+                        dead=f"{m.get('actor_dead', 0.0):.0%}")
         warning = None if warned or not main else dead_actor_warning(m, config.activation)
         if warning:
             warned.append(m["update"])

@@ -237,6 +237,9 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
                              "for 32-64 envs; with 512 envs 10 refreshes as often per env step)")
     parser.add_argument("--sfl-candidates", type=positive_int, default=None, metavar="N",
                         help="sfl: fresh levels scored at each refresh (default: 128; the reference scores 12,288)")
+    parser.add_argument("--sfl-attempts", type=positive_int, default=None, metavar="N",
+                        help="sfl: episodes per candidate level when scoring its learnability p(1-p) (default: 4, "
+                             "so p is one of 0, 1/4, ... 1; more attempts give a finer p at a costlier refresh)")
     parser.add_argument("--buffer-size", type=positive_int, default=None, metavar="N",
                         help="sfl and plr: levels kept in the buffer (default: 64; for sfl at most --sfl-candidates)")
     parser.add_argument("--init", metavar="general|DIR", help="fine-tune this agent instead of starting from scratch")

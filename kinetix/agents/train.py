@@ -553,7 +553,7 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 "size_groups": getattr(args, "size_groups", None)}
     curriculum_config = dict(stored.get("curriculum_config") or {})
     for option, field in (("sfl_refresh_every", "refresh_every"), ("sfl_candidates", "candidates"),
-                          ("buffer_size", "buffer_size")):
+                          ("sfl_attempts", "attempts"), ("buffer_size", "buffer_size")):
         if getattr(args, option, None) is not None:
             curriculum_config[field] = getattr(args, option)
     if curriculum_config:

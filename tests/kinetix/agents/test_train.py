@@ -50,3 +50,18 @@ def test_eval_and_train_reject_bad_input(capsys, tmp_path):
     assert main(["train", "--level", str(SMALL), "--curriculum", "sfl", "--out", str(tmp_path / "o")]) == 2
     assert "needs random levels" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_sfl_options_reach_the_curriculum_config(capsys):
+    from kinetix.agents.train import settings_from_args
+    from kinetix.cli import build_parser
+
+    args = build_parser().parse_args(["train", "--level", "random-s", "--curriculum", "sfl", "--sfl-candidates", "64",
+                                      "--sfl-attempts", "8", "--buffer-size", "16", "--sfl-refresh-every", "5"])
+    config = settings_from_args(args)["curriculum_config"]
+    assert (config.candidates, config.attempts, config.buffer_size, config.refresh_every) == (64, 8, 16, 5)
+    assert "curriculum_config" not in settings_from_args(build_parser().parse_args(["train", "--level", "random-s"]))
+    for bad in ("0", "-2", "two"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["train", "--level", "random-s", "--sfl-attempts", bad])
+        assert "--sfl-attempts" in capsys.readouterr().err

@@ -372,6 +372,10 @@ def _bench_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-envs", type=positive_int, default=32, help="parallel environments (default: 32)")
     parser.add_argument("--num-steps", type=positive_int, default=64, help="rollout length (default: 64)")
     parser.add_argument("--updates-per-call", type=positive_int, default=4, help="updates per chunk (default: 4)")
+    parser.add_argument("--update-epochs", type=positive_int, default=None,
+                        help="PPO epochs per update (default: kinetix train's, 4)")
+    parser.add_argument("--num-minibatches", type=positive_int, default=None,
+                        help="minibatches per epoch (default: kinetix train's, 4); the general run uses 32")
     parser.add_argument("--chunks", type=positive_int, default=3, help="timed chunks after the first (default: 3)")
     parser.add_argument("--devices", type=positive_int, default=None,
                         help="CPU devices to split the env batch over (default: one per core, as bench env)")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 
 import jax
@@ -24,15 +25,17 @@ from kinetix.level import WALLS_SOLVER, size_class
 from kinetix.level_source import RANDOM_DENSE_REWARD
 
 
-def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int, timed: bool = True) -> dict:
+def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_call: int, timed: bool = True,
+            **ppo: int) -> dict:
     """PPO env steps per second with updates: the first chunk (compiling) apart, then `chunks` timed ones.
-    timed=False stops after the first chunk (it only compiles, e.g. into the persistent cache)."""
+    timed=False stops after the first chunk (it only compiles, e.g. into the persistent cache). `ppo`: other
+    TrainConfig fields (update_epochs, num_minibatches), TrainConfig's defaults where not given."""
     from kinetix.agents.train import random_all_groups, size_groups_for
     from kinetix.generate import sample_level
     from kinetix.level_source import level_source
 
     config = TrainConfig(num_envs=num_envs, num_steps=num_steps, updates_per_call=updates_per_call,
-                         total_timesteps=num_envs * num_steps * updates_per_call * (chunks + 1))
+                         total_timesteps=num_envs * num_steps * updates_per_call * (chunks + 1), **ppo)
     devices = batch_devices(num_envs)  # as `kinetix train` and `kinetix bench env`: the env batch over every device
     sharder = lambda n: batch_sharder(local_mesh(), n) if devices > 1 else None
     groups = None
@@ -62,7 +65,8 @@ def measure(size: str, num_envs: int, num_steps: int, chunks: int, updates_per_c
     jax.block_until_ready(metrics)
     elapsed = time.perf_counter() - start
     steps = chunks * updates_per_call * config.batch_size
-    return {"size": size, "num_envs": num_envs, "num_steps": num_steps, "env_steps": steps,
+    return {"size": size, "num_envs": num_envs, "num_steps": num_steps, "update_epochs": config.update_epochs,
+            "num_minibatches": config.num_minibatches, "env_steps": steps,
             "seconds": round(elapsed, 2), "steps_per_second": round(steps / elapsed, 1),
             "first_chunk_seconds": round(first, 2), "devices": devices}
 
@@ -77,8 +81,14 @@ def env_speed(size: str, num_envs: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    ppo = {name: value for name in ("update_epochs", "num_minibatches") if (value := getattr(args, name)) is not None}
+    try:  # the settings' own checks (e.g. minibatches that do not divide the batch) before anything compiles
+        TrainConfig(num_envs=args.num_envs, num_steps=args.num_steps, **ppo)
+    except ValueError as error:
+        print(f"kinetix bench train: {error}", file=sys.stderr)
+        return 2
     for size in args.sizes:
-        result = measure(size, args.num_envs, args.num_steps, args.chunks, args.updates_per_call)
+        result = measure(size, args.num_envs, args.num_steps, args.chunks, args.updates_per_call, **ppo)
         if args.env and size.startswith("all"):
             print(f"size {size}: no reference level to compare with (--env measures s, m and l)", flush=True)
         elif args.env:
@@ -89,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(result), flush=True)
             continue
         line = (f"size {size}: {result['steps_per_second']:9.1f} env steps/s with updates ({result['num_envs']} envs "
-                f"on {result['devices']} device(s), {result['env_steps']} steps in {result['seconds']} s; first chunk "
+                f"on {result['devices']} device(s), {result['update_epochs']} epochs of {result['num_minibatches']} "
+                f"minibatches, {result['env_steps']} steps in {result['seconds']} s; first chunk "
                 f"incl. compile {result['first_chunk_seconds']} s)")
         if "share_of_env" in result:
             line += (f"; env alone {result['env_steps_per_second']:.0f} steps/s ({result['env_level']}): training "

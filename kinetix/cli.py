@@ -256,6 +256,12 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ent-coef", type=float, default=None,
                         help="weight of the entropy bonus in the PPO loss (default: 0.01); with --resume, the weight "
                              "from then on")
+    parser.add_argument("--gamma", type=float, default=None,
+                        help="discount per step in the returns and GAE (default: 0.99; the reference general agent "
+                             "0.995); part of what a run optimises, so --resume refuses a change")
+    parser.add_argument("--gae-lambda", type=float, default=None, metavar="LAMBDA",
+                        help="GAE's lambda (default: 0.95; the reference general agent 0.9); --resume refuses a "
+                             "change")
     parser.add_argument("--constant-lr", action="store_const", const=True, default=None,
                         help="keep the learning rate constant instead of annealing it linearly to 0 over the run "
                              "(a run extended with --resume --steps then equals one planned that long)")

@@ -72,6 +72,11 @@ class TrainConfig:
         if isinstance(self.ent_coef, bool) or not isinstance(self.ent_coef, int | float) \
                 or not 0 <= self.ent_coef < math.inf:
             raise ValueError(f"ent_coef must be a finite number >= 0, got {self.ent_coef!r}")
+        for name, lowest in (("gamma", "0 < "), ("gae_lambda", "0 <= ")):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value <= 1 \
+                    or (name == "gamma" and value == 0):
+                raise ValueError(f"{name} must be a number with {lowest}{name} <= 1, got {value!r}")
         check_activation(self.activation)
         if not isinstance(self.pooled_norm, bool):
             raise ValueError(f"pooled_norm must be true or false, got {self.pooled_norm!r}")

@@ -518,7 +518,7 @@ class StopRule:
 
 # `kinetix train` options that are TrainConfig fields of the same name
 CONFIG_OPTIONS = ("num_envs", "num_steps", "updates_per_call", "lr", "ent_coef", "network", "width", "hidden",
-                  "update_epochs", "num_minibatches", "activation", "pooled_norm")
+                  "update_epochs", "num_minibatches", "activation", "pooled_norm", "gamma", "gae_lambda")
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:

@@ -65,3 +65,19 @@ def test_sfl_options_reach_the_curriculum_config(capsys):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["train", "--level", "random-s", "--sfl-attempts", bad])
         assert "--sfl-attempts" in capsys.readouterr().err
+
+
+def test_gamma_and_gae_lambda_options(capsys, tmp_path):
+    from kinetix.agents.train import settings_from_args
+    from kinetix.cli import build_parser
+
+    args = build_parser().parse_args(["train", "--level", str(SMALL), "--gamma", "0.995", "--gae-lambda", "0.9"])
+    config = settings_from_args(args)["config"]
+    assert (config.gamma, config.gae_lambda) == (0.995, 0.9)
+    assert settings_from_args(build_parser().parse_args(["train", "--level", str(SMALL)]))["config"].gamma == 0.99
+    for option, bad in (("--gamma", "0"), ("--gamma", "1.5"), ("--gae-lambda", "-0.1"), ("--gae-lambda", "nan")):
+        out = tmp_path / f"o{bad}"
+        assert main(["train", "--level", str(SMALL), option, bad, "--out", str(out)]) == 2
+        name = option[2:].replace("-", "_")
+        assert f"{name} must be a number with" in capsys.readouterr().err
+        assert not out.exists()

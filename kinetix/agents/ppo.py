@@ -39,6 +39,11 @@ from kinetix.agents.rollout import fresh_state
 from kinetix.env import EnvParams, KinetixEnv
 
 
+def _real(value: Any) -> bool:
+    """A real number as a setting: an int or float, not a bool (True would pass as 1)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     total_timesteps: int = 1_000_000
@@ -67,16 +72,14 @@ class TrainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if isinstance(self.lr, bool) or not isinstance(self.lr, int | float) or not 0 < self.lr < math.inf:
+        if not (_real(self.lr) and 0 < self.lr < math.inf):
             raise ValueError(f"lr must be a positive finite number, got {self.lr!r}")
-        if isinstance(self.ent_coef, bool) or not isinstance(self.ent_coef, int | float) \
-                or not 0 <= self.ent_coef < math.inf:
+        if not (_real(self.ent_coef) and 0 <= self.ent_coef < math.inf):
             raise ValueError(f"ent_coef must be a finite number >= 0, got {self.ent_coef!r}")
-        for name, lowest in (("gamma", "0 < "), ("gae_lambda", "0 <= ")):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value <= 1 \
-                    or (name == "gamma" and value == 0):
-                raise ValueError(f"{name} must be a number with {lowest}{name} <= 1, got {value!r}")
+        if not (_real(self.gamma) and 0 < self.gamma <= 1):
+            raise ValueError(f"gamma must be a number with 0 < gamma <= 1, got {self.gamma!r}")
+        if not (_real(self.gae_lambda) and 0 <= self.gae_lambda <= 1):
+            raise ValueError(f"gae_lambda must be a number with 0 <= gae_lambda <= 1, got {self.gae_lambda!r}")
         check_activation(self.activation)
         if not isinstance(self.pooled_norm, bool):
             raise ValueError(f"pooled_norm must be true or false, got {self.pooled_norm!r}")

@@ -21,7 +21,6 @@ Only what both trees' bench modules offer under the same names can be compared (
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
 import io
 import json
@@ -32,9 +31,10 @@ import sys
 import tarfile
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 from kinetix.bench.env import REFERENCE_LEVELS, REPO_DIR, SHARED_LEVELS
 
@@ -79,8 +79,7 @@ def export_tree(commit: str, dest: Path, repo: Path = REPO_DIR, suffix: str = SU
 class Side:
     """One tree's bench modules and level loader, imported under its own package names."""
 
-    def __init__(self, name: str, prefix: str):
-        self.name = name
+    def __init__(self, prefix: str):
         self.env = importlib.import_module(f"kinetix{prefix}.bench.env")
         self.engine = importlib.import_module(f"kinetix{prefix}.bench.engine")
         self.levels = importlib.import_module(f"kinetix{prefix}.levels")
@@ -96,23 +95,13 @@ class Side:
             captured.append(run)
             return 1.0, jax.block_until_ready(run()), 1
 
-        with _patched(module, "timed_runs", capture):
+        with mock.patch.object(module, "timed_runs", capture):
             if what == "env":
                 module.measure_rollout(self.levels.load_level(level), level.stem, batch, steps, cold=False)
             else:
                 (workload,) = self.engine.builtin_workloads([size])
                 module.measure_rollout(workload, batch, steps, cold=False)
         return captured[0]
-
-
-@contextlib.contextmanager
-def _patched(module, name: str, value) -> Iterator[None]:
-    old = getattr(module, name)
-    setattr(module, name, value)
-    try:
-        yield
-    finally:
-        setattr(module, name, old)
 
 
 def _time(run: Callable[[], Any]) -> float:
@@ -197,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     enable_compilation_cache()
     with tempfile.TemporaryDirectory(prefix="kinetix-ab-") as tmp:
         sys.path.insert(0, str(export_tree(args.before, Path(tmp))))
-        sides = Side("before", SUFFIX), Side("after", "")
+        sides = Side(SUFFIX), Side("")
         for what, workloads in (("env", args.env), ("engine", args.engine)):
             for size, batch in workloads:
                 level = args.levels[size] if what == "env" else None

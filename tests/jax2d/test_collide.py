@@ -421,3 +421,15 @@ def test_random_batch_is_finite_and_well_formed():
         assert m.point.shape == (500, 2, 2)
         if name != "polygons":
             assert not np.any(valid[:, 1])
+
+
+def test_best_entry_is_argmax_and_max_with_ties_and_nans_as_numpy_has_them():
+    from jax2d import collide
+
+    rng = np.random.default_rng(3)
+    values = rng.integers(0, 4, (8, 50)).astype(np.float32)  # many ties
+    values[rng.random((8, 50)) < 0.05] = np.nan
+    for largest, arg, best in ((True, np.argmax, np.max), (False, np.argmin, np.min)):
+        index, value = collide._best(jnp.asarray(values), largest)
+        np.testing.assert_array_equal(np.asarray(index), arg(values, axis=0))
+        np.testing.assert_array_equal(np.asarray(value), best(values, axis=0))

@@ -28,10 +28,12 @@ from jax2d.sweeps import (
     PUSH_ROWS,
     TANGENT,
     Block,
+    Chain,
     Rows,
     Schedule,
     apply_impulse,
     for_points,
+    index_row,
     pack_rows,
     relative_velocity,
     sweep,
@@ -263,7 +265,7 @@ def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule)
 
 
 def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness: Softness, inv_h, max_push,
-          use_bias: bool, plan: Schedule, only_stiff: bool = False,
+          use_bias: bool, plan: Schedule | Chain, only_stiff: bool = False,
           reverse_points: bool = False) -> tuple[Vel, jax.Array]:
     """One Gauss-Seidel sweep of normal then friction constraints over all colours.
 
@@ -271,10 +273,11 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
     softness: the scene's (its bias rate; each point's mass scale is its "soft" row, load_softness).
     only_stiff: solve only the points load_softness stiffened (the others keep their impulses), for the
     extra passes those get (plan: schedule(const, rows="stiff")); reverse_points: each manifold's second
-    point first.
+    point first. A Chain plan (stiff_chain) runs a pass over all colours and then such extra passes, one loop:
+    its passes 1, 2, ... are only_stiff, the odd ones with reverse_points.
     """
 
-    def normal(c: Block, sep, k, vels, lam):
+    def normal(c: Block, sep, stiff_only, k, vels, lam):
         vn = velocity_along(c, k, vels, c.nx, c.ny)
         s = sep[k]
         speculative = s > 0.0
@@ -286,23 +289,30 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         else:
             bias = jnp.where(speculative, s * inv_h, 0.0)
             mass_scale, impulse_scale = 1.0, 0.0
-        old = lam[NORMAL + k]
-        return keep(c, k, old, jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old,
-                                           0.0))
+        old = index_row(lam, NORMAL + k)
+        new = jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old, 0.0)
+        return keep(c, stiff_only, k, old, new)
 
-    def friction(c: Block, k, vels, lam):
+    def friction(c: Block, stiff_only, k, vels, lam):
         vt = velocity_along(c, k, vels, c.ny, -c.nx)
-        limit = c.friction * lam[NORMAL + k]
-        return keep(c, k, lam[TANGENT + k], jnp.clip(lam[TANGENT + k] - c.point("tmass", k) * vt, -limit, limit))
+        old = index_row(lam, TANGENT + k)
+        limit = c.friction * index_row(lam, NORMAL + k)
+        return keep(c, stiff_only, k, old, jnp.clip(old - c.point("tmass", k) * vt, -limit, limit))
 
-    def keep(c: Block, k, old, new):
-        return jnp.where(c.point("stiff", k) > 0.0, new, old) if only_stiff else new
+    def keep(c: Block, stiff_only, k, old, new):
+        if stiff_only is False:
+            return new
+        stiff = c.point("stiff", k) > 0.0
+        return jnp.where(stiff if stiff_only is True else stiff | ~stiff_only, new, old)
 
-    def solve_colour(vels, lam, points, c: Block, sep: Rows):
-        vels, lam = for_points(points, NORMAL, functools.partial(normal, c, sep),
+    def solve_colour(vels, lam, points, c: Block, sep: Rows, pass_of=None):
+        stiff_only, reverse = only_stiff, reverse_points
+        if pass_of is not None:  # a Chain's visit
+            stiff_only, reverse = pass_of > 0, pass_of % 2
+        vels, lam = for_points(points, NORMAL, functools.partial(normal, c, sep, stiff_only),
                                functools.partial(apply_impulse, c, "normal", NORMAL, track_max=True), vels, lam,
-                               reverse_points)
-        return for_points(points, TANGENT, functools.partial(friction, c),
-                          functools.partial(apply_impulse, c, "tangent", TANGENT), vels, lam, reverse_points)
+                               reverse)
+        return for_points(points, TANGENT, functools.partial(friction, c, stiff_only),
+                          functools.partial(apply_impulse, c, "tangent", TANGENT), vels, lam, reverse)
 
     return sweep(layout, vel, solve_colour, const, impulses, plan, separation)

@@ -243,6 +243,9 @@ class SolverConfig:
     def __post_init__(self):
         if self.control_flow not in CONTROL_FLOWS:
             raise ValueError(f"control_flow must be one of {', '.join(CONTROL_FLOWS)}, not {self.control_flow!r}")
+        if self.stiff_relax_iterations and not self.relax_iterations:
+            raise ValueError("stiff_relax_iterations are more passes after the relax pass: they need "
+                             "relax_iterations >= 1")
         if self.joint_position_projection is not None and self.joint_projection is None:
             raise ValueError("joint_position_projection is a part of the joint projection stage: it needs "
                              "joint_projection (set both to None to skip the stage)")

@@ -8,11 +8,12 @@
     substeps x n:
         integrate velocities    gravity and thrusters (forces)
         warm start              last impulses, applied all at once
-        solve                   joints then contacts, with soft position bias (joint_solver, contact_solver); then
-                                2 more passes over the contacts stiffened by their resting load (loads.py)
+        solve                   joints then contacts, with soft position bias (joint_solver, contact_solver), the
+                                contacts' pass chained with 2 more over those stiffened by their resting load
+                                (loads.py, sweeps.Chain)
         integrate positions
-        relax                   joints then contacts, without bias (removes bias energy); then 1 more pass over
-                                the stiffened contacts
+        relax                   joints then contacts, without bias (removes bias energy), chained with 1 more
+                                pass over the stiffened contacts
     restitution             impacts propagated through touching chains, then bounces (restitution)
     joint projection        all joints' point and weld rows solved at once, on velocities and positions
                             (joint_solver.project)
@@ -52,7 +53,7 @@ from jax2d.pairs import ContactLayout, contact_layout
 from jax2d.restitution import restitution
 from jax2d.state import Joints, SimParams, SimState, SolverConfig
 from jax2d.store import store
-from jax2d.sweeps import Schedule, schedule
+from jax2d.sweeps import Chain, Schedule, chain, schedule
 
 DEFAULT_CONFIG = SolverConfig()
 
@@ -278,13 +279,14 @@ def _prepare(layout: ContactLayout, state: SimState, params: SimParams, motor_ac
     return loop, valid, layout
 
 
-def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, stiff: Schedule, joints: joint_solver.Schedule,
-              config: SolverConfig):
+def _substeps(layout: ContactLayout, d: LoopData, solve_plan: Schedule | Chain, relax_plan: Schedule | Chain,
+              colours: Schedule, joints: joint_solver.Schedule, config: SolverConfig):
     """The substep loop on batch-last arrays: every function here broadcasts over trailing batch axes.
 
-    colours: the colours with a point in some scene (contact_solver.schedule); stiff: those with a point
-    stiffened by its load (contact_solver.load_softness), which get more solve and relax passes; joints: the joint
-    slots active in some scene (joint_solver.schedule), which the joint loops visit.
+    colours: the colours with a point in some scene (contact_solver.schedule); solve_plan and relax_plan: the
+    contact solve's and the last relax's colours, chained with more passes over those with a point stiffened by
+    its load (_contact_plans); joints: the joint slots active in some scene (joint_solver.schedule), which the joint
+    loops visit.
     """
     h = d.h
     inv_h = 1.0 / h
@@ -300,30 +302,35 @@ def _substeps(layout: ContactLayout, d: LoopData, colours: Schedule, stiff: Sche
         vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=True, plan=joints)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
         vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                         d.max_push_velocity, use_bias=True, plan=colours)
-        # More passes over the points stiffened by their load (contact_solver.load_softness): the velocities
-        # the positions are integrated with must hold a heavy body on a light one, which a pass over all
-        # colours does only by about the mass ratio. Every other pass takes a manifold's second point first
-        # (point 0 first in every pass pushed a box between two stiff manifolds to one side each time).
-        for k in range(config.stiff_solve_iterations):
-            vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                             d.max_push_velocity, use_bias=True, plan=stiff, only_stiff=True,
-                                             reverse_points=k % 2 == 0)
+                                         d.max_push_velocity, use_bias=True, plan=solve_plan)
         pose = Pose(pose.x + h * vel.x, pose.y + h * vel.y, pose.a + h * vel.w)
         frame = joint_solver.frame(d.joints, d.jc, pose)
         sep = contact_solver.current_separation(layout, d.cc, pose, d.pose0, token)
-        for _ in range(config.relax_iterations):
+        for r in range(config.relax_iterations):
             vel, jimp = joint_solver.solve(d.jc, frame, jimp, vel, d.joint_softness, inv_h, use_bias=False,
                                            plan=joints)
             vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                             d.max_push_velocity, use_bias=False, plan=colours)
-        for k in range(config.stiff_relax_iterations):
-            vel, cimp = contact_solver.solve(layout, d.const, cimp, vel, sep, d.contact_softness, inv_h,
-                                             d.max_push_velocity, use_bias=False, plan=stiff, only_stiff=True,
-                                             reverse_points=k % 2 == 0)
+                                             d.max_push_velocity, use_bias=False,
+                                             plan=relax_plan if r == config.relax_iterations - 1 else colours)
         return pose, vel, cimp, jimp
 
     return jax.lax.fori_loop(0, config.substeps, substep, (d.pose0, d.vel0, d.cimp, d.jimp))
+
+
+def _contact_plans(const, colours: Schedule, config: SolverConfig) -> tuple[Schedule | Chain, Schedule | Chain]:
+    """The contact solve's and the last relax's plans: a pass over the live colours, chained with the extra passes
+    over the points stiffened by their load (contact_solver.load_softness) that the config asks for.
+
+    Those passes make the velocities the positions are integrated with hold a heavy body on a light one, which a
+    pass over all colours does only by about the mass ratio; every other one takes a manifold's second point first
+    (point 0 first in every pass pushed a box between two stiff manifolds to one side each time). Chained into the
+    pass over all colours (sweeps.Chain), they cost nothing in steps that have no stiffened point."""
+    stiff = schedule(const, colours.fixed, rows="stiff")
+
+    def plan(repeats: int):
+        return chain(colours, stiff, repeats) if repeats else colours
+
+    return plan(config.stiff_solve_iterations), plan(config.stiff_relax_iterations)
 
 
 def _solve(layout, loop: LoopData, config: SolverConfig):
@@ -331,9 +338,9 @@ def _solve(layout, loop: LoopData, config: SolverConfig):
     fixed = config.control_flow == control.FIXED
     with jax.named_scope("jax2d_substeps"):
         colours = schedule(loop.const, fixed)
-        stiff = schedule(loop.const, fixed, rows="stiff")
+        solve_plan, relax_plan = _contact_plans(loop.const, colours, config)
         joints = joint_solver.schedule(loop.jc, fixed)
-        pose, vel, cimp, jimp = _substeps(layout, loop, colours, stiff, joints, config)
+        pose, vel, cimp, jimp = _substeps(layout, loop, solve_plan, relax_plan, colours, joints, config)
     with jax.named_scope("jax2d_restitution"):
         gap = functools.partial(contact_solver.current_separation, layout, loop.cc, pose, loop.pose0,
                                 None if fixed else jnp.int32(config.substeps))

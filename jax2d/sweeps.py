@@ -83,7 +83,17 @@ class Rows:
         self.packed, self.c = packed, c
 
     def __getitem__(self, i):
-        return at(self.packed[:, i], self.c)
+        """Row i (an int, a traced int or a slice)."""
+        if isinstance(i, (int, slice)):
+            return at(self.packed[:, i], self.c)
+        return at(jax.lax.dynamic_index_in_dim(self.packed, i, 1, keepdims=False, allow_negative_indices=False),
+                  self.c)
+
+    def span(self, start, size: int):
+        """Rows start to start + size (start an int or a traced int)."""
+        if isinstance(start, int):
+            return self[start:start + size]
+        return at(jax.lax.dynamic_slice_in_dim(self.packed, start, size, 1, allow_negative_indices=False), self.c)
 
 
 class Block(Rows):
@@ -94,14 +104,13 @@ class Block(Rows):
             raise AttributeError(name)
         return self[ROW[name]]
 
-    def point(self, name, k: int):
-        """Row of point k."""
-        return self[ROW[f"{name}{k}"]]
+    def point(self, name, k):
+        """Row of point k (0, 1 or a traced int: a point's two rows are adjacent)."""
+        return self[ROW[f"{name}0"] + k]
 
-    def push(self, kind: str, k: int):
-        """(6, K, *batch) the push rows of point k's normal or tangent."""
-        i = ROW[PUSH_ROWS[(kind, k)][0]]
-        return self[i:i + len(VEL_ROWS)]
+    def push(self, kind: str, k):
+        """(6, K, *batch) the push rows of point k's normal or tangent (point 1's follow point 0's)."""
+        return self.span(ROW[PUSH_ROWS[(kind, 0)][0]] + len(VEL_ROWS) * k, len(VEL_ROWS))
 
 
 class Schedule(NamedTuple):
@@ -142,7 +151,43 @@ def schedule(const, fixed: bool = False, rows: str = "nmass") -> Schedule:
     return Schedule(order, jnp.sum(live, dtype=jnp.int32), 1 + second.astype(jnp.int32))
 
 
-def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: Schedule, *inputs):
+class Chain(NamedTuple):
+    """A sweep over one schedule's colours followed by `repeats` sweeps over another's, visited by one loop.
+
+    The contact solve and relax run a pass over every live colour and then extra passes over the colours with a
+    stiffened point (step.py). As separate loops those cost three loops of no trips per substep in the many steps
+    that have no stiffened point (a sixth of the step at batch 16: each loop copies the packed impulses into its
+    carry); chained, they add only their visits. Per visit: its colour, its pass (0 the first schedule's, r its
+    r-th repeat of the second) and its points (Schedule.points of its colour; None in a fixed chain)."""
+
+    colour: jax.Array  # (V,) int32
+    pass_of: jax.Array  # (V,) int32
+    points: jax.Array | None  # (V,) int32
+    count: jax.Array | int  # visits; an int in a fixed chain (jax2d/control.py)
+
+    @property
+    def fixed(self) -> bool:
+        return isinstance(self.count, int)
+
+
+def chain(first: Schedule, then: Schedule, repeats: int) -> Chain:
+    """One sweep over `first`'s colours, then `repeats` over `then`'s (both of the same packed rows)."""
+    C = first.order.shape[0]
+    passes = 1 + repeats
+    if first.fixed:
+        return Chain(jnp.asarray(np.tile(np.arange(C, dtype=np.int32), passes)),
+                     jnp.asarray(np.repeat(np.arange(passes, dtype=np.int32), C)), None, C * passes)
+    visit = jnp.arange(C * passes, dtype=jnp.int32)
+    later = visit - first.count  # the visit's index among the repeats' visits
+    per_repeat = jnp.maximum(then.count, 1)
+    in_first = later < 0
+    colour = jnp.where(in_first, first.order[jnp.minimum(visit, C - 1)], then.order[jnp.maximum(later, 0) % per_repeat])
+    pass_of = jnp.where(in_first, 0, 1 + jnp.maximum(later, 0) // per_repeat)
+    points = jnp.where(in_first, first.points[colour], then.points[colour])
+    return Chain(colour, pass_of.astype(jnp.int32), points, first.count + repeats * then.count)
+
+
+def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: Schedule | Chain, *inputs):
     """Run `solve_colour(vels, lam, points, const_block, *input_rows) -> (vels, lam)` on every live
     colour in order. vels: the colour's (6, K, *batch) VEL_ROWS; lam: its (6, K, *batch) impulse
     rows; points: how many of the two points any slot of the colour has; const_block and
@@ -153,7 +198,8 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
     of side a and the K of side b as one (3, 2K, *batch) array, solves, and writes them back by a
     gather (layout.write_back). One array rather than six: each gather and velocity update is then
     one kernel, and a step at a small batch is a long chain of such small kernels. Skipped colours
-    keep their impulses, which is what solving them would give.
+    keep their impulses, which is what solving them would give. With a Chain plan, solve_colour gets the
+    visit's pass as a last argument (a traced int).
     Returns the velocities and the packed (C, 6, K, *batch) impulses.
     """
     K = layout.per_colour
@@ -167,29 +213,35 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
         def gather(v, idx):
             return v[:, idx]
 
-    def colour(v, lam, c):
+    chained = isinstance(plan, Chain)
+
+    def colour(v, lam, c, i):
         vels = gather(v, at(sides, c)).reshape((6, K) + batch)
-        points = None if plan.points is None else at(plan.points, c)
-        vels, lam = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs))
+        points = None if plan.points is None else at(plan.points, i if chained else c)
+        extra = (at(plan.pass_of, i),) if chained else ()
+        vels, lam = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs), *extra)
         return gather(jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1), at(write_back, c)), lam
 
     def visited(i):  # the i-th colour the sweep visits
+        if chained:
+            return at(plan.colour, i)
         return i if plan.fixed else at(plan.order, i)
 
     def body(i, carry):
         v, out = carry
         c = visited(i)
         # Read from the input, not the carry: reading a slice of the array the loop updates in place
-        # made XLA copy all of it in every iteration.
-        v, lam = colour(v, at(impulses, c), c)
+        # made XLA copy all of it in every iteration. A chain visits a colour again: it reads the carry.
+        v, lam = colour(v, at(out if chained else impulses, c), c, i)
         return v, set_at(out, c, lam)
 
     def body_same_impulses(i, v):
         c = visited(i)
-        return colour(v, at(impulses, c), c)[0]
+        return colour(v, at(impulses, c), c, i)[0]
 
+    extra = (jnp.int32(0),) if chained else ()
     probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[0], None, Block(const, 0),
-                                                *(Rows(x, 0) for x in inputs))[1])
+                                                *(Rows(x, 0) for x in inputs), *extra)[1])
     if probe is None:
         v = jax.lax.fori_loop(0, plan.count, body_same_impulses, stacked)
     else:
@@ -202,18 +254,19 @@ def colour_sides(vels) -> tuple[Vel, Vel]:
     return Vel(vels[0], vels[2], vels[4]), Vel(vels[1], vels[3], vels[5])
 
 
-def with_rows(lam, rows: dict) -> jax.Array:
-    """lam (6, K, *batch) impulse rows with the rows in `rows` ({row: value}) replaced: an elementwise
-    select, so that the update stays one kernel (a stack of rows compiled to one per row)."""
+def with_rows(lam, rows) -> jax.Array:
+    """lam (6, K, *batch) impulse rows with the rows in `rows` ({row: value}, or (row, value) pairs where a row is
+    traced) replaced: an elementwise select, so that the update stays one kernel (a stack of rows compiled to one
+    per row)."""
     index = jnp.arange(lam.shape[0]).reshape((-1,) + (1,) * (lam.ndim - 1))
-    for row, value in rows.items():
+    for row, value in (rows.items() if isinstance(rows, dict) else rows):
         lam = jnp.where(index == row, value[None], lam)
     return lam
 
 
-def for_points(points, row: int, accumulated, push, vels, lam, reverse: bool = False):
+def for_points(points, row: int, accumulated, push, vels, lam, reverse=False):
     """Solve one impulse row of the points k < `points` of a colour, point by point (the second first with
-    `reverse`).
+    `reverse`: a bool, or a traced 0 / 1, which makes k traced too).
 
     accumulated(k, vels, lam) -> the new accumulated impulse of row `row + k`; push(k, vels, lam, new)
     -> the velocities and impulses with it applied. The first is the branch of a conditional
@@ -225,12 +278,13 @@ def for_points(points, row: int, accumulated, push, vels, lam, reverse: bool = F
     A point's update is then three kernels; a point loop over separate arrays took about 18.
     points None (a fixed schedule, jax2d/control.py): both points, without conditionals.
     """
-    for k in ((1, 0) if reverse else (0, 1)):
+    for j in (0, 1):
+        k = (1 - j if reverse else j) if isinstance(reverse, bool) else j + (1 - 2 * j) * reverse
         if points is None:
             new = accumulated(k, vels, lam)
         else:
-            new = jax.lax.cond(points > k, functools.partial(accumulated, k), lambda v, lam, r=row + k: lam[r],
-                               vels, lam)
+            new = jax.lax.cond(points > k, functools.partial(accumulated, k),
+                               lambda v, lam, r=row + k: index_row(lam, r), vels, lam)
         vels, lam = push(k, vels, lam, new)
     return vels, lam
 
@@ -239,11 +293,16 @@ def apply_impulse(c: Block, kind: str, row: int, k: int, vels, lam, new, track_m
     """Apply point k's new accumulated impulse `new` of impulse row `row + k` (its normal or tangent, `kind`):
     the velocities change by the push rows times the difference, the row takes `new`, and with
     `track_max` the point's largest normal impulse so far is kept (restitution reads it)."""
-    impulse = new - lam[row + k]
-    rows = {row + k: new}
+    impulse = new - index_row(lam, row + k)
+    rows = [(row + k, new)]
     if track_max:
-        rows[MAX + k] = jnp.maximum(lam[MAX + k], impulse)
+        rows.append((MAX + k, jnp.maximum(index_row(lam, MAX + k), impulse)))
     return vels + c.push(kind, k) * impulse[None], with_rows(lam, rows)
+
+
+def index_row(x, i):
+    """x[i] for an int or a traced int i (math2d.at)."""
+    return x[i] if isinstance(i, int) else at(x, i)
 
 
 def velocity_along(c: Block, k: int, vels, dx, dy):

@@ -376,6 +376,12 @@ def test_position_projection_without_the_projection_stage_is_refused():
         SolverConfig(joint_projection=None)
 
 
+def test_stiff_relax_passes_without_a_relax_pass_are_refused():
+    SolverConfig(relax_iterations=0, stiff_relax_iterations=0)  # no relax at all: fine
+    with pytest.raises(ValueError, match="need relax_iterations >= 1"):
+        SolverConfig(relax_iterations=0)
+
+
 def test_a_scene_with_no_polygon_slots_steps():
     """Circles only (Capacity(polygons=0)): the step has no polygon to collide or store a rotation for. Two
     overlapping balls fall and are pushed apart."""

@@ -29,3 +29,74 @@ def test_joint_schedule_lists_slots_active_in_any_scene_in_order():
     plan = joint_solver.schedule(jc)
     assert int(plan.count) == 2
     assert np.asarray(plan.order)[:2].tolist() == [0, 3]
+
+
+def _const_with(points: dict, stiff: dict, C: int, K: int, B: int) -> jnp.ndarray:
+    """Packed constant rows with a normal mass at each (colour, point, slot, scene) of `points` and a stiffness row
+    at each of `stiff`."""
+    const = np.zeros((C, len(CONST_ROWS), K, B), np.float32)
+    for rows, name in ((points, "nmass"), (stiff, "stiff")):
+        for c, k, slot, scene in rows:
+            const[c, CONST_ROWS.index(f"{name}{k}"), slot, scene] = 1.0
+    return jnp.asarray(const)
+
+
+def test_chain_visits_the_first_schedules_colours_then_the_seconds_again_and_again():
+    C, K, B = 6, 3, 2
+    const = _const_with(points=[(1, 0, 0, 0), (3, 1, 2, 1), (4, 0, 1, 0)], stiff=[(4, 0, 1, 0), (1, 0, 0, 0)],
+                        C=C, K=K, B=B)
+    colours, stiff = sweeps.schedule(const), sweeps.schedule(const, rows="stiff")
+    plan = sweeps.chain(colours, stiff, 2)
+    n = int(plan.count)
+    assert n == 3 + 2 * 2
+    assert np.asarray(plan.colour)[:n].tolist() == [1, 3, 4, 1, 4, 1, 4]
+    assert np.asarray(plan.pass_of)[:n].tolist() == [0, 0, 0, 1, 1, 2, 2]
+    assert np.asarray(plan.points)[:n].tolist() == [1, 2, 1, 1, 1, 1, 1]  # colour 3's point 1 only in pass 0
+
+    fixed = sweeps.chain(sweeps.schedule(const, fixed=True), sweeps.schedule(const, fixed=True, rows="stiff"), 1)
+    assert fixed.count == 2 * C and fixed.points is None
+    assert np.asarray(fixed.colour).tolist() == list(range(C)) * 2
+    assert np.asarray(fixed.pass_of).tolist() == [0] * C + [1] * C
+
+
+def test_chain_with_no_second_colour_visits_the_first_schedule_only():
+    const = _const_with(points=[(2, 0, 0, 0)], stiff=[], C=4, K=2, B=1)
+    plan = sweeps.chain(sweeps.schedule(const), sweeps.schedule(const, rows="stiff"), 3)
+    assert int(plan.count) == 1
+    assert int(plan.colour[0]) == 2 and int(plan.pass_of[0]) == 0
+
+
+def test_a_chained_sweep_equals_its_sweeps_one_after_the_other():
+    """A colour visited again in a later pass starts from the impulses its earlier visit left (the sweep reads its
+    carry), and each visit is told its pass."""
+    from jax2d.math2d import Vel
+    from jax2d.pairs import contact_layout
+
+    layout = contact_layout(num_polygons=4, num_circles=2)
+    C, K, M, B = layout.num_colours, layout.per_colour, layout.num_padded, 3
+    rng = np.random.default_rng(0)
+    const = np.zeros((C, len(CONST_ROWS), K, B), np.float32)
+    const[:, CONST_ROWS.index("nmass0")] = rng.random((C, K, B)) < 0.5
+    const[:, CONST_ROWS.index("stiff0")] = (rng.random((C, K, B)) < 0.3) * const[:, CONST_ROWS.index("nmass0")]
+    const = jnp.asarray(const)
+    impulses = jnp.asarray(rng.random((C, 6, K, B), np.float32))
+    vel = Vel(*(jnp.asarray(rng.random((M, B), np.float32)) for _ in range(3)))
+
+    def update(vels, lam, pass_of):  # order-dependent: a stale read of lam or vels changes the result
+        return vels * 0.5 + lam[:1].sum() * 0.01 + pass_of, lam * 1.5 + vels[:1].mean() + pass_of
+
+    def chained_colour(vels, lam, points, c, pass_of):
+        return update(vels, lam, pass_of)
+
+    def colour_in(pass_of):
+        return lambda vels, lam, points, c: update(vels, lam, pass_of)
+
+    colours, stiff = sweeps.schedule(const), sweeps.schedule(const, rows="stiff")
+    assert int(colours.count) > int(stiff.count) > 0
+    got_vel, got = sweeps.sweep(layout, vel, chained_colour, const, impulses, sweeps.chain(colours, stiff, 2))
+    want_vel, want = sweeps.sweep(layout, vel, colour_in(0), const, impulses, colours)
+    for p in (1, 2):
+        want_vel, want = sweeps.sweep(layout, want_vel, colour_in(p), const, want, stiff)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    for g, w in zip(got_vel, want_vel, strict=True):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))

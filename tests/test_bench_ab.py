@@ -99,3 +99,14 @@ def test_a_tiny_engine_ab_against_head_runs_both_sides():
     assert (result["what"], result["size"], result["batch"], result["rounds"]) == ("engine", "s", 2, 2)
     assert result["before_steps_per_s"] > 0 and result["after_steps_per_s"] > 0
     assert len(result["ratios"]) == 2 and result["ratio_min"] <= result["ratio_median"] <= result["ratio_max"]
+
+
+def test_the_summary_compares_medians_rounds_and_fastest_runs():
+    from kinetix.bench.ab import summary
+
+    # before: 2, 1, 4 s; after: 1, 2, 1 s (10 scenes x 10 steps)
+    result = summary("engine", "s", 10, 10, [2.0, 1.0, 4.0], [1.0, 2.0, 1.0])
+    assert result["ratios"] == [2.0, 0.5, 4.0]
+    assert result["ratio_median"] == 2.0 and (result["ratio_min"], result["ratio_max"]) == (0.5, 4.0)
+    assert result["ratio_best"] == 1.0  # fastest 1 s each
+    assert result["before_steps_per_s"] == 50.0 and result["after_steps_per_s"] == 100.0

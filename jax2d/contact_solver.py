@@ -143,7 +143,7 @@ def load_softness(softness: Softness, normal_mass, load, max_sag) -> tuple[jax.A
     settling stack (a lagged stiffness stores less than it gives back) and it rocked apart. Stiff points need
     more Gauss-Seidel passes than the substeps' one solve and one relax (a 100:1 stack stiffened 1.5-2x without
     them fell apart in seconds), which SolverConfig.stiff_solve_iterations and stiff_relax_iterations give them
-    (solve's only_stiff)."""
+    (solve with a Chain plan)."""
     a2 = softness.mass_scale / softness.impulse_scale
     needed = load * safe_inverse(normal_mass * softness.bias_rate * max_sag)
     stiff = (needed > a2) & (normal_mass > 0.0)
@@ -265,16 +265,15 @@ def warm_start(layout: ContactLayout, const, impulses, vel: Vel, plan: Schedule)
 
 
 def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness: Softness, inv_h, max_push,
-          use_bias: bool, plan: Schedule | Chain, only_stiff: bool = False,
-          reverse_points: bool = False) -> tuple[Vel, jax.Array]:
-    """One Gauss-Seidel sweep of normal then friction constraints over all colours.
+          use_bias: bool, plan: Schedule | Chain) -> tuple[Vel, jax.Array]:
+    """One Gauss-Seidel sweep of normal then friction constraints over the plan's colours.
 
     const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
     softness: the scene's (its bias rate; each point's mass scale is its "soft" row, load_softness).
-    only_stiff: solve only the points load_softness stiffened (the others keep their impulses), for the
-    extra passes those get (plan: schedule(const, rows="stiff")); reverse_points: each manifold's second
-    point first. A Chain plan (stiff_chain) runs a pass over all colours and then such extra passes, one loop:
-    its passes 1, 2, ... are only_stiff, the odd ones with reverse_points.
+    A Chain plan (sweeps.chain of the live colours and schedule(const, rows="stiff")) follows the pass over all
+    colours with extra passes over the points load_softness stiffened, in the same loop: in its passes 1, 2, ...
+    only those points are solved (the others keep their impulses), and the odd ones take each manifold's second
+    point first.
     """
 
     def normal(c: Block, sep, stiff_only, k, vels, lam):
@@ -300,13 +299,12 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         return keep(c, stiff_only, k, old, jnp.clip(old - c.point("tmass", k) * vt, -limit, limit))
 
     def keep(c: Block, stiff_only, k, old, new):
-        if stiff_only is False:
+        if stiff_only is None:
             return new
-        stiff = c.point("stiff", k) > 0.0
-        return jnp.where(stiff if stiff_only is True else stiff | ~stiff_only, new, old)
+        return jnp.where((c.point("stiff", k) > 0.0) | ~stiff_only, new, old)
 
     def solve_colour(vels, lam, points, c: Block, sep: Rows, pass_of=None):
-        stiff_only, reverse = only_stiff, reverse_points
+        stiff_only, reverse = None, False
         if pass_of is not None:  # a Chain's visit
             stiff_only, reverse = pass_of > 0, pass_of % 2
         vels, lam = for_points(points, NORMAL, functools.partial(normal, c, sep, stiff_only),

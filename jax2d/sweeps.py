@@ -155,10 +155,10 @@ class Chain(NamedTuple):
     """A sweep over one schedule's colours followed by `repeats` sweeps over another's, visited by one loop.
 
     The contact solve and relax run a pass over every live colour and then extra passes over the colours with a
-    stiffened point (step.py). As separate loops those cost three loops of no trips per substep in the many steps
-    that have no stiffened point (a sixth of the step at batch 16: each loop copies the packed impulses into its
-    carry); chained, they add only their visits. Per visit: its colour, its pass (0 the first schedule's, r its
-    r-th repeat of the second) and its points (Schedule.points of its colour; None in a fixed chain)."""
+    stiffened point (step.py). As separate loops those were three loops of no trips per substep in the many steps
+    that have no stiffened point, each copying the packed impulses into its carry; chained, they add no loop, only
+    their visits (docs/engine.md, "Two cuts"). Per visit: its colour, its pass (0 the first schedule's, r its r-th
+    repeat of the second) and its points (Schedule.points of its colour; None in a fixed chain)."""
 
     colour: jax.Array  # (V,) int32
     pass_of: jax.Array  # (V,) int32

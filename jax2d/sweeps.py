@@ -218,8 +218,8 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
     def colour(v, lam, c, i):
         vels = gather(v, at(sides, c)).reshape((6, K) + batch)
         points = None if plan.points is None else at(plan.points, i if chained else c)
-        extra = (at(plan.pass_of, i),) if chained else ()
-        vels, lam = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs), *extra)
+        visit_pass = (at(plan.pass_of, i),) if chained else ()
+        vels, lam = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs), *visit_pass)
         return gather(jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1), at(write_back, c)), lam
 
     def visited(i):  # the i-th colour the sweep visits
@@ -239,9 +239,9 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
         c = visited(i)
         return colour(v, at(impulses, c), c, i)[0]
 
-    extra = (jnp.int32(0),) if chained else ()
+    first_pass = (jnp.int32(0),) if chained else ()
     probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[0], None, Block(const, 0),
-                                                *(Rows(x, 0) for x in inputs), *extra)[1])
+                                                *(Rows(x, 0) for x in inputs), *first_pass)[1])
     if probe is None:
         v = jax.lax.fori_loop(0, plan.count, body_same_impulses, stacked)
     else:

@@ -81,8 +81,7 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
                            functools.partial(apply_impulse, c, "normal", _KICK), vels, lam)
 
     def measure_colour(vels, lam, points, c: Block):
-        ends = {_END + k: approach(c, k, vels) for k in range(2)}
-        return vels, with_rows(lam, ends)
+        return vels, with_rows(lam, [(_END + k, approach(c, k, vels)) for k in range(2)])
 
     def bounce(c: Block, prop: Rows, k, vels, lam):
         # The propagation ends at the separating speed right after impact. The velocity the step stores is

@@ -255,11 +255,11 @@ def colour_sides(vels) -> tuple[Vel, Vel]:
 
 
 def with_rows(lam, rows) -> jax.Array:
-    """lam (6, K, *batch) impulse rows with the rows in `rows` ({row: value}, or (row, value) pairs where a row is
-    traced) replaced: an elementwise select, so that the update stays one kernel (a stack of rows compiled to one
-    per row)."""
+    """lam (6, K, *batch) impulse rows with the rows in `rows` ((row, value) pairs; a row an int or a traced int)
+    replaced: an elementwise select, so that the update stays one kernel (a stack of rows compiled to one per
+    row)."""
     index = jnp.arange(lam.shape[0]).reshape((-1,) + (1,) * (lam.ndim - 1))
-    for row, value in (rows.items() if isinstance(rows, dict) else rows):
+    for row, value in rows:
         lam = jnp.where(index == row, value[None], lam)
     return lam
 

@@ -33,7 +33,6 @@ from jax2d.sweeps import (
     Schedule,
     apply_impulse,
     for_points,
-    index_row,
     pack_rows,
     relative_velocity,
     sweep,
@@ -288,25 +287,21 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
         else:
             bias = jnp.where(speculative, s * inv_h, 0.0)
             mass_scale, impulse_scale = 1.0, 0.0
-        old = index_row(lam, NORMAL + k)
+        old = lam[NORMAL + k]
         new = jnp.maximum(old - c.point("nmass", k) * mass_scale * (vn + bias) - impulse_scale * old, 0.0)
         return keep(c, stiff_only, k, old, new)
 
     def friction(c: Block, stiff_only, k, vels, lam):
         vt = velocity_along(c, k, vels, c.ny, -c.nx)
-        old = index_row(lam, TANGENT + k)
-        limit = c.friction * index_row(lam, NORMAL + k)
+        old = lam[TANGENT + k]
+        limit = c.friction * lam[NORMAL + k]
         return keep(c, stiff_only, k, old, jnp.clip(old - c.point("tmass", k) * vt, -limit, limit))
 
-    def keep(c: Block, stiff_only, k, old, new):
-        if stiff_only is None:
-            return new
-        return jnp.where((c.point("stiff", k) > 0.0) | ~stiff_only, new, old)
+    def keep(c: Block, stiff_only: bool, k, old, new):
+        return jnp.where(c.point("stiff", k) > 0.0, new, old) if stiff_only else new
 
-    def solve_colour(vels, lam, points, c: Block, sep: Rows, pass_of=None):
-        stiff_only, reverse = None, False
-        if pass_of is not None:  # a Chain's visit
-            stiff_only, reverse = pass_of > 0, pass_of % 2
+    def solve_colour(vels, lam, points, c: Block, sep: Rows, pass_of: int = 0):
+        stiff_only, reverse = pass_of > 0, pass_of % 2 == 1  # a Chain's repeats (sweeps.sweep)
         vels, lam = for_points(points, NORMAL, functools.partial(normal, c, sep, stiff_only),
                                functools.partial(apply_impulse, c, "normal", NORMAL, track_max=True), vels, lam,
                                reverse)

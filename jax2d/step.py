@@ -323,8 +323,9 @@ def _contact_plans(const, colours: Schedule, config: SolverConfig) -> tuple[Sche
 
     Those passes make the velocities the positions are integrated with hold a heavy body on a light one, which a
     pass over all colours does only by about the mass ratio; every other one takes a manifold's second point first
-    (point 0 first in every pass pushed a box between two stiff manifolds to one side each time). Chained into the
-    pass over all colours (sweeps.Chain), they add no loop, and no visit in steps that have no stiffened point."""
+    (point 0 first in every pass pushed a box between two stiff manifolds to one side each time). Chained to the
+    pass over all colours (sweeps.Chain), they are one loop after it, with no visit in steps that have no
+    stiffened point."""
     stiff = schedule(const, colours.fixed, rows="stiff")
 
     def plan(repeats: int):

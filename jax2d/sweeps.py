@@ -83,17 +83,7 @@ class Rows:
         self.packed, self.c = packed, c
 
     def __getitem__(self, i):
-        """Row i (an int, a traced int or a slice)."""
-        if isinstance(i, (int, slice)):
-            return at(self.packed[:, i], self.c)
-        return at(jax.lax.dynamic_index_in_dim(self.packed, i, 1, keepdims=False, allow_negative_indices=False),
-                  self.c)
-
-    def span(self, start, size: int):
-        """Rows start to start + size (start an int or a traced int)."""
-        if isinstance(start, int):
-            return self[start:start + size]
-        return at(jax.lax.dynamic_slice_in_dim(self.packed, start, size, 1, allow_negative_indices=False), self.c)
+        return at(self.packed[:, i], self.c)
 
 
 class Block(Rows):
@@ -104,13 +94,14 @@ class Block(Rows):
             raise AttributeError(name)
         return self[ROW[name]]
 
-    def point(self, name, k):
-        """Row of point k (0, 1 or a traced int: a point's two rows are adjacent)."""
-        return self[ROW[f"{name}0"] + k]
+    def point(self, name, k: int):
+        """Row of point k."""
+        return self[ROW[f"{name}{k}"]]
 
-    def push(self, kind: str, k):
-        """(6, K, *batch) the push rows of point k's normal or tangent (point 1's follow point 0's)."""
-        return self.span(ROW[PUSH_ROWS[(kind, 0)][0]] + len(VEL_ROWS) * k, len(VEL_ROWS))
+    def push(self, kind: str, k: int):
+        """(6, K, *batch) the push rows of point k's normal or tangent."""
+        i = ROW[PUSH_ROWS[(kind, k)][0]]
+        return self[i:i + len(VEL_ROWS)]
 
 
 class Schedule(NamedTuple):
@@ -152,18 +143,21 @@ def schedule(const, fixed: bool = False, rows: str = "nmass") -> Schedule:
 
 
 class Chain(NamedTuple):
-    """A sweep over one schedule's colours followed by `repeats` sweeps over another's, visited by one loop.
+    """A sweep over one schedule's colours followed by `repeats` sweeps over another's.
 
     The contact solve and relax run a pass over every live colour and then extra passes over the colours with a
-    stiffened point (step.py). As separate loops those were three loops of no trips per substep in the many steps
-    that have no stiffened point, each copying the packed impulses into its carry; chained, they add no loop, only
-    their visits (docs/engine.md, "Two cuts"). Per visit: its colour, its pass (0 the first schedule's, r its r-th
-    repeat of the second) and its points (Schedule.points of its colour; None in a fixed chain)."""
+    stiffened point (step.py). As a loop per pass those were three loops of no trips per substep in the many steps
+    that have no stiffened point, each copying the packed impulses into its carry. `sweep` runs a chain as two
+    loops: the first pass, then all the repeats, each visit in the branch of its pass (docs/engine.md, "One
+    branch per pass"). Per visit: its colour, its pass (0 the first schedule's, r its r-th repeat of the second)
+    and its points (Schedule.points of its colour; None in a fixed chain)."""
 
     colour: jax.Array  # (V,) int32
     pass_of: jax.Array  # (V,) int32
     points: jax.Array | None  # (V,) int32
     count: jax.Array | int  # visits; an int in a fixed chain (jax2d/control.py)
+    first: jax.Array | int  # the first pass's visits (they come first)
+    passes: int  # 1 + repeats
 
     @property
     def fixed(self) -> bool:
@@ -176,7 +170,7 @@ def chain(first: Schedule, then: Schedule, repeats: int) -> Chain:
     passes = 1 + repeats
     if first.fixed:
         return Chain(jnp.asarray(np.tile(np.arange(C, dtype=np.int32), passes)),
-                     jnp.asarray(np.repeat(np.arange(passes, dtype=np.int32), C)), None, C * passes)
+                     jnp.asarray(np.repeat(np.arange(passes, dtype=np.int32), C)), None, C * passes, C, passes)
     visit = jnp.arange(C * passes, dtype=jnp.int32)
     later = visit - first.count  # the visit's index among the repeats' visits
     per_repeat = jnp.maximum(then.count, 1)
@@ -184,7 +178,8 @@ def chain(first: Schedule, then: Schedule, repeats: int) -> Chain:
     colour = jnp.where(in_first, first.order[jnp.minimum(visit, C - 1)], then.order[jnp.maximum(later, 0) % per_repeat])
     pass_of = jnp.where(in_first, 0, 1 + jnp.maximum(later, 0) // per_repeat)
     points = jnp.where(in_first, first.points[colour], then.points[colour])
-    return Chain(colour, pass_of.astype(jnp.int32), points, first.count + repeats * then.count)
+    return Chain(colour, pass_of.astype(jnp.int32), points, first.count + repeats * then.count, first.count,
+                 passes)
 
 
 def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: Schedule | Chain, *inputs):
@@ -199,7 +194,7 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
     gather (layout.write_back). One array rather than six: each gather and velocity update is then
     one kernel, and a step at a small batch is a long chain of such small kernels. Skipped colours
     keep their impulses, which is what solving them would give. With a Chain plan, solve_colour gets the
-    visit's pass as a last argument (a traced int).
+    visit's pass as a last argument (a Python int: 0 for the first schedule's sweep, r for the r-th repeat).
     Returns the velocities and the packed (C, 6, K, *batch) impulses.
     """
     K = layout.per_colour
@@ -215,10 +210,9 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
 
     chained = isinstance(plan, Chain)
 
-    def colour(v, lam, c, i):
+    def colour(v, lam, c, i, visit_pass=()):
         vels = gather(v, at(sides, c)).reshape((6, K) + batch)
         points = None if plan.points is None else at(plan.points, i if chained else c)
-        visit_pass = (at(plan.pass_of, i),) if chained else ()
         vels, lam = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs), *visit_pass)
         return gather(jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1), at(write_back, c)), lam
 
@@ -227,25 +221,46 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
             return at(plan.colour, i)
         return i if plan.fixed else at(plan.order, i)
 
-    def body(i, carry):
-        v, out = carry
-        c = visited(i)
-        # Read from the input, not the carry: reading a slice of the array the loop updates in place
-        # made XLA copy all of it in every iteration. A chain visits a colour again: it reads the carry.
-        v, lam = colour(v, at(out if chained else impulses, c), c, i)
-        return v, set_at(out, c, lam)
-
-    def body_same_impulses(i, v):
-        c = visited(i)
-        return colour(v, at(impulses, c), c, i)[0]
-
-    first_pass = (jnp.int32(0),) if chained else ()
+    first_pass = (0,) if chained else ()
     probe = jax.eval_shape(lambda: solve_colour(jnp.zeros((6, K) + batch), impulses[0], None, Block(const, 0),
                                                 *(Rows(x, 0) for x in inputs), *first_pass)[1])
-    if probe is None:
-        v = jax.lax.fori_loop(0, plan.count, body_same_impulses, stacked)
+    updates = probe is not None  # else the loop carries the velocities only
+
+    def visit(p, i, c, v, out):
+        """Visit i, of colour c, in pass p (None: a plain schedule's) -> (velocities, the colour's impulses).
+        It reads the input's impulses, not the carry's: reading a slice of the array the loop updates in place
+        made XLA copy all of it in every iteration. A chain's first pass visits each colour once, before any
+        repeat, so it may too; the repeats visit colours again and read the carry."""
+        return colour(v, at(out if p else impulses, c), c, i, () if p is None else (p,))
+
+    def body(p):
+        """The loop body of pass p (None: a plain schedule's); "repeats": a chain's repeats, each visit in the
+        branch of its pass (a conditional). Each pass's colour update compiles with its pass a constant: with the
+        pass traced, every row a point reads was a dynamic slice, and a visit at l, batch 1, ran 68 kernels and
+        copies against 48. The first pass has a loop of its own, without the conditional: in one loop with it,
+        env l at batch 1 ran 20-25 % slower (docs/engine.md, "One branch per pass")."""
+        def run(i, carry):
+            v, out = carry if updates else (carry, impulses)
+            c = visited(i)
+            if p == "repeats":
+                branches = [functools.partial(visit, q, i, c) for q in range(1, plan.passes)]
+                v, lam = jax.lax.switch(at(plan.pass_of, i) - 1, branches, v, out)
+            else:
+                v, lam = visit(p, i, c, v, out)
+            return (v, set_at(out, c, lam)) if updates else v
+        return run
+
+    carry = (stacked, impulses) if updates else stacked
+    if not chained:
+        carry = jax.lax.fori_loop(0, plan.count, body(None), carry)
+    elif plan.fixed:  # a loop per pass: no conditional (jax2d/control.py), and each loop's count is known
+        per_pass = plan.count // plan.passes
+        for p in range(plan.passes):
+            carry = jax.lax.fori_loop(p * per_pass, (p + 1) * per_pass, body(p), carry)
     else:
-        v, impulses = jax.lax.fori_loop(0, plan.count, body, (stacked, impulses))
+        carry = jax.lax.fori_loop(0, plan.first, body(0), carry)
+        carry = jax.lax.fori_loop(plan.first, plan.count, body(1 if plan.passes == 2 else "repeats"), carry)
+    v, impulses = carry if updates else (carry, impulses)
     return Vel(v[0], v[1], v[2]), impulses
 
 
@@ -255,18 +270,17 @@ def colour_sides(vels) -> tuple[Vel, Vel]:
 
 
 def with_rows(lam, rows) -> jax.Array:
-    """lam (6, K, *batch) impulse rows with the rows in `rows` ((row, value) pairs; a row an int or a traced int)
-    replaced: an elementwise select, so that the update stays one kernel (a stack of rows compiled to one per
-    row)."""
+    """lam (6, K, *batch) impulse rows with the rows in `rows` ((row, value) pairs) replaced: an elementwise
+    select, so that the update stays one kernel (a stack of rows compiled to one per row)."""
     index = jnp.arange(lam.shape[0]).reshape((-1,) + (1,) * (lam.ndim - 1))
     for row, value in rows:
         lam = jnp.where(index == row, value[None], lam)
     return lam
 
 
-def for_points(points, row: int, accumulated, push, vels, lam, reverse=False):
+def for_points(points, row: int, accumulated, push, vels, lam, reverse: bool = False):
     """Solve one impulse row of the points k < `points` of a colour, point by point (the second first with
-    `reverse`: a bool, or a traced 0 / 1, which makes k traced too).
+    `reverse`).
 
     accumulated(k, vels, lam) -> the new accumulated impulse of row `row + k`; push(k, vels, lam, new)
     -> the velocities and impulses with it applied. The first is the branch of a conditional
@@ -278,13 +292,12 @@ def for_points(points, row: int, accumulated, push, vels, lam, reverse=False):
     A point's update is then three kernels; a point loop over separate arrays took about 18.
     points None (a fixed schedule, jax2d/control.py): both points, without conditionals.
     """
-    for j in (0, 1):
-        k = (1 - j if reverse else j) if isinstance(reverse, bool) else j + (1 - 2 * j) * reverse
+    for k in ((1, 0) if reverse else (0, 1)):
         if points is None:
             new = accumulated(k, vels, lam)
         else:
-            new = jax.lax.cond(points > k, functools.partial(accumulated, k),
-                               lambda v, lam, r=row + k: index_row(lam, r), vels, lam)
+            new = jax.lax.cond(points > k, functools.partial(accumulated, k), lambda v, lam, r=row + k: lam[r],
+                               vels, lam)
         vels, lam = push(k, vels, lam, new)
     return vels, lam
 
@@ -293,16 +306,11 @@ def apply_impulse(c: Block, kind: str, row: int, k: int, vels, lam, new, track_m
     """Apply point k's new accumulated impulse `new` of impulse row `row + k` (its normal or tangent, `kind`):
     the velocities change by the push rows times the difference, the row takes `new`, and with
     `track_max` the point's largest normal impulse so far is kept (restitution reads it)."""
-    impulse = new - index_row(lam, row + k)
+    impulse = new - lam[row + k]
     rows = [(row + k, new)]
     if track_max:
-        rows.append((MAX + k, jnp.maximum(index_row(lam, MAX + k), impulse)))
+        rows.append((MAX + k, jnp.maximum(lam[MAX + k], impulse)))
     return vels + c.push(kind, k) * impulse[None], with_rows(lam, rows)
-
-
-def index_row(x, i):
-    """x[i] for an int or a traced int i (math2d.at)."""
-    return x[i] if isinstance(i, int) else at(x, i)
 
 
 def velocity_along(c: Block, k: int, vels, dx, dy):

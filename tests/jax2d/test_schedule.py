@@ -2,6 +2,7 @@
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jax2d import joint_solver, sweeps
 from jax2d.sweeps import CONST_ROWS
@@ -66,9 +67,11 @@ def test_chain_with_no_second_colour_visits_the_first_schedule_only():
     assert int(plan.colour[0]) == 2 and int(plan.pass_of[0]) == 0
 
 
-def test_a_chained_sweep_equals_its_sweeps_one_after_the_other():
+@pytest.mark.parametrize("repeats", [1, 2])
+@pytest.mark.parametrize("fixed", [False, True])
+def test_a_chained_sweep_equals_its_sweeps_one_after_the_other(repeats, fixed):
     """A colour visited again in a later pass starts from the impulses its earlier visit left (the sweep reads its
-    carry), and each visit is told its pass."""
+    carry), and each visit is told its pass, as a constant."""
     from jax2d.math2d import Vel
     from jax2d.pairs import contact_layout
 
@@ -86,16 +89,17 @@ def test_a_chained_sweep_equals_its_sweeps_one_after_the_other():
         return vels * 0.5 + lam[:1].sum() * 0.01 + pass_of, lam * 1.5 + vels[:1].mean() + pass_of
 
     def chained_colour(vels, lam, points, c, pass_of):
+        assert isinstance(pass_of, int)  # each pass compiles on its own (sweeps.sweep)
         return update(vels, lam, pass_of)
 
     def colour_in(pass_of):
         return lambda vels, lam, points, c: update(vels, lam, pass_of)
 
-    colours, stiff = sweeps.schedule(const), sweeps.schedule(const, rows="stiff")
-    assert int(colours.count) > int(stiff.count) > 0
-    got_vel, got = sweeps.sweep(layout, vel, chained_colour, const, impulses, sweeps.chain(colours, stiff, 2))
+    colours, stiff = sweeps.schedule(const, fixed), sweeps.schedule(const, fixed, rows="stiff")
+    assert fixed or int(colours.count) > int(stiff.count) > 0
+    got_vel, got = sweeps.sweep(layout, vel, chained_colour, const, impulses, sweeps.chain(colours, stiff, repeats))
     want_vel, want = sweeps.sweep(layout, vel, colour_in(0), const, impulses, colours)
-    for p in (1, 2):
+    for p in range(1, repeats + 1):
         want_vel, want = sweeps.sweep(layout, want_vel, colour_in(p), const, want, stiff)
     np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
     for g, w in zip(got_vel, want_vel, strict=True):

@@ -270,7 +270,7 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
     const: packed constraints; impulses: packed (C, 6, K); separation: packed (C, 2, K).
     softness: the scene's (its bias rate; each point's mass scale is its "soft" row, load_softness).
     A Chain plan (sweeps.chain of the live colours and schedule(const, rows="stiff")) follows the pass over all
-    colours with extra passes over the points load_softness stiffened, in the same loop: in its passes 1, 2, ...
+    colours with extra passes over the points load_softness stiffened (one loop after it): in its passes 1, 2, ...
     only those points are solved (the others keep their impulses), and the odd ones take each manifold's second
     point first.
     """

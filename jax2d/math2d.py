@@ -131,9 +131,17 @@ def stored(token, fn, *args):
     """
     if token is None:
         return fn(*args)
+    shapes = jax.eval_shape(fn, *args)
+    leaves, tree = jax.tree.flatten(shapes)
+    if len(leaves) > 1 and len({(leaf.shape, leaf.dtype) for leaf in leaves}) == 1:
+        # Results of one shape leave the branch as one array: each output of a conditional is a kernel of
+        # its own, and a joint's angular stage (5 results) cost 5 kernels per joint and sweep at batch 1.
+        packed = jax.lax.cond(token >= 0, lambda *a: jnp.stack(jax.tree.leaves(fn(*a))),
+                              lambda *a: jnp.zeros((len(leaves),) + leaves[0].shape, leaves[0].dtype), *args)
+        return jax.tree.unflatten(tree, list(packed))
 
     def zeros(*a):
-        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(fn, *a))
+        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
     return jax.lax.cond(token >= 0, fn, zeros, *args)
 

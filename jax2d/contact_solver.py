@@ -29,6 +29,7 @@ from jax2d.sweeps import (
     TANGENT,
     Block,
     Chain,
+    ImpulseRow,
     Rows,
     Schedule,
     apply_impulse,
@@ -302,10 +303,10 @@ def solve(layout: ContactLayout, const, impulses, vel: Vel, separation, softness
 
     def solve_colour(vels, lam, points, c: Block, sep: Rows, pass_of: int = 0):
         stiff_only, reverse = pass_of > 0, pass_of % 2 == 1  # a Chain's repeats (sweeps.sweep)
-        vels, lam = for_points(points, NORMAL, functools.partial(normal, c, sep, stiff_only),
-                               functools.partial(apply_impulse, c, "normal", NORMAL, track_max=True), vels, lam,
-                               reverse)
-        return for_points(points, TANGENT, functools.partial(friction, c, stiff_only),
-                          functools.partial(apply_impulse, c, "tangent", TANGENT), vels, lam, reverse)
+        rows = (ImpulseRow(NORMAL, functools.partial(normal, c, sep, stiff_only),
+                           functools.partial(apply_impulse, c, "normal", NORMAL, track_max=True)),
+                ImpulseRow(TANGENT, functools.partial(friction, c, stiff_only),
+                           functools.partial(apply_impulse, c, "tangent", TANGENT)))
+        return for_points(points, rows, vels, lam, reverse)
 
     return sweep(layout, vel, solve_colour, const, impulses, plan, separation)

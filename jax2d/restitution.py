@@ -39,6 +39,7 @@ from jax2d.sweeps import (
     NORMAL,
     ROW,
     Block,
+    ImpulseRow,
     Rows,
     Schedule,
     apply_impulse,
@@ -77,8 +78,8 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
         return lam[_KICK + k] + jnp.where(kick, -(1.0 + c.restitution) * c.point("nmass", k) * vn, 0.0)
 
     def propagate_colour(vels, lam, points, c: Block, main: Rows):
-        return for_points(points, _KICK, functools.partial(propagate, c, main),
-                           functools.partial(apply_impulse, c, "normal", _KICK), vels, lam)
+        return for_points(points, (ImpulseRow(_KICK, functools.partial(propagate, c, main),
+                                              functools.partial(apply_impulse, c, "normal", _KICK)),), vels, lam)
 
     def measure_colour(vels, lam, points, c: Block):
         return vels, with_rows(lam, [(_END + k, approach(c, k, vels)) for k in range(2)])
@@ -100,8 +101,8 @@ def restitution(layout: ContactLayout, const, impulses, vel: Vel, vel0: Vel, gap
         return jnp.where(scene_bounces & (lam[MAX + k] > 0.0), new, old)
 
     def bounce_colour(vels, lam, points, c: Block, prop: Rows):
-        return for_points(points, NORMAL, functools.partial(bounce, c, prop),
-                          functools.partial(apply_impulse, c, "normal", NORMAL), vels, lam)
+        return for_points(points, (ImpulseRow(NORMAL, functools.partial(bounce, c, prop),
+                                              functools.partial(apply_impulse, c, "normal", NORMAL)),), vels, lam)
 
     def run():
         prop = jnp.zeros_like(impulses)

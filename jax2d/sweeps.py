@@ -278,28 +278,62 @@ def with_rows(lam, rows) -> jax.Array:
     return lam
 
 
-def for_points(points, row: int, accumulated, push, vels, lam, reverse: bool = False):
-    """Solve one impulse row of the points k < `points` of a colour, point by point (the second first with
-    `reverse`).
+# for_points moves a point's push into its conditional where a colour's row holds at most this many numbers
+# (K slots x batch): see there.
+FUSED_POINTS = 256
 
-    accumulated(k, vels, lam) -> the new accumulated impulse of row `row + k`; push(k, vels, lam, new)
-    -> the velocities and impulses with it applied. The first is the branch of a conditional
-    (k < points), so the impulse is computed once and stored: XLA's CPU fusion copies a chain of
-    elementwise operations into each of its consumers, which would recompute it for every row it
-    changes. Point 0's condition always holds for a live colour; XLA cannot know that, so it stays
-    a conditional too. An absent point keeps its impulse, so push changes nothing.
 
-    A point's update is then three kernels; a point loop over separate arrays took about 18.
-    points None (a fixed schedule, jax2d/control.py): both points, without conditionals.
+class ImpulseRow(NamedTuple):
+    """One impulse row of a colour's points for `for_points`: accumulated(k, vels, lam) -> point k's new
+    accumulated impulse of row `row + k`; push(k, vels, lam, new) -> the velocities and impulses with it applied."""
+
+    row: int
+    accumulated: object
+    push: object
+
+
+def for_points(points, impulse_rows: tuple[ImpulseRow, ...], vels, lam, reverse: bool = False):
+    """Solve the impulse rows of the points k < `points` of a colour, each row point by point (the second first
+    with `reverse`), the rows in turn.
+
+    A point's new impulse is the branch of a conditional (k < points), so it is computed once and stored: XLA's
+    CPU fusion copies a chain of elementwise operations into each of its consumers, which would recompute it for
+    every row it changes. Point 0's condition always holds for a live colour; XLA cannot know that, so it stays
+    a conditional too. An absent point keeps its impulse, so push changes nothing. A point's update is then
+    three kernels (the impulse, the velocities, the impulses); a point loop over separate arrays took about 18.
+
+    Where a colour is small (at most FUSED_POINTS numbers a row), the push moves into the branch too, and the
+    velocities and impulses travel from point to point and row to row as one (12, K, *batch) array, the branch's
+    one result: a point's update is one kernel, whose 12 rows each compute the impulse again, which at that size
+    costs less than the two kernels it saves (engine l at batch 1: 24 kernels and copies a contact colour against
+    16). Both give the same numbers.
+    points None (a fixed schedule, jax2d/control.py): every point, without conditionals.
     """
-    for k in ((1, 0) if reverse else (0, 1)):
-        if points is None:
-            new = accumulated(k, vels, lam)
-        else:
-            new = jax.lax.cond(points > k, functools.partial(accumulated, k), lambda v, lam, r=row + k: lam[r],
+    order = (1, 0) if reverse else (0, 1)
+    steps = [(r, k) for r in impulse_rows for k in order]
+    if points is None:
+        for r, k in steps:
+            vels, lam = r.push(k, vels, lam, r.accumulated(k, vels, lam))
+        return vels, lam
+    if vels[0].size > FUSED_POINTS:
+        for r, k in steps:
+            new = jax.lax.cond(points > k, functools.partial(r.accumulated, k), lambda v, lam, i=r.row + k: lam[i],
                                vels, lam)
-        vels, lam = push(k, vels, lam, new)
-    return vels, lam
+            vels, lam = r.push(k, vels, lam, new)
+        return vels, lam
+
+    n = vels.shape[0]
+
+    def update(r: ImpulseRow, k: int, both):
+        vels, lam = both[:n], both[n:]
+        return jnp.concatenate(r.push(k, vels, lam, r.accumulated(k, vels, lam)))
+
+    both = jnp.concatenate([vels, lam])
+    for r, k in steps:
+        # Point 0 is in every live colour, and a fusion's result is stored anyway: no conditional.
+        both = update(r, k, both) if k == 0 else jax.lax.cond(points > k, functools.partial(update, r, k),
+                                                              lambda b: b, both)
+    return both[:n], both[n:]
 
 
 def apply_impulse(c: Block, kind: str, row: int, k: int, vels, lam, new, track_max: bool = False):

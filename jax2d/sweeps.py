@@ -279,8 +279,11 @@ def with_rows(lam, rows) -> jax.Array:
 
 
 # for_points moves a point's push into its conditional where a colour's row holds at most this many numbers
-# (K slots x batch): see there.
-FUSED_POINTS = 256
+# (K slots x batch on one device): see there. Against 256, in one process (kinetix.bench.ab, 2 Dec 2026; s, m and
+# l have K = 4, 5 and 8, and a batch of 256 is 128 a device): env m 256 +23 %, env s 256 +9 %, engine m 256 +6 %,
+# engine s 256 +4 %. At 1,024 (l at 128 a device, s at a chunk of 256) fusing lost: engine l 256 -6 %,
+# env s 2048 -1 % (env l 256 +3 %).
+FUSED_POINTS = 768
 
 
 class ImpulseRow(NamedTuple):

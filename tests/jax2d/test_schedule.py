@@ -104,3 +104,40 @@ def test_a_chained_sweep_equals_its_sweeps_one_after_the_other(repeats, fixed):
     np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
     for g, w in zip(got_vel, want_vel, strict=True):
         np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+
+
+@pytest.mark.parametrize("fused", [False, True])
+@pytest.mark.parametrize("points", [1, 2])
+@pytest.mark.parametrize("reverse", [False, True])
+def test_for_points_solves_each_row_point_by_point_in_order_fused_or_not(monkeypatch, fused, points, reverse):
+    """Both forms of sweeps.for_points (the push inside the point's conditional at small colours, outside it at
+    large ones) solve the rows in turn, each point after the other, and leave an absent point (k >= points) alone."""
+    import functools
+
+    import jax2d
+
+    K, B = 3, 2
+    monkeypatch.setattr(sweeps, "FUSED_POINTS", 10 ** 6 if fused else 0)
+    rng = np.random.default_rng(1)
+    vels = jnp.asarray(rng.random((6, K, B), np.float32))
+    lam = jnp.asarray(rng.random((6, K, B), np.float32))
+
+    def accumulated(row, k, vels, lam):  # reads what the earlier points and rows left
+        return lam[row + k] * 0.5 + vels[2 * k].sum(axis=0) * 0.25 + vels[5] * 0.125
+
+    def push(row, k, vels, lam, new):
+        delta = new - lam[row + k]
+        return vels + delta[None] * (0.5 + k), lam.at[row + k].set(new).at[4].add(delta)
+
+    rows = tuple(sweeps.ImpulseRow(row, functools.partial(accumulated, row), functools.partial(push, row))
+                 for row in (0, 2))
+    got = jax2d.jit(lambda v, lam, n: sweeps.for_points(n, rows, v, lam, reverse))(vels, lam, jnp.int32(points))
+
+    want_v, want_lam = vels, lam
+    for r in rows:
+        for k in ((1, 0) if reverse else (0, 1)):
+            if k < points:
+                want_v, want_lam = r.push(k, want_v, want_lam, r.accumulated(k, want_v, want_lam))
+    for g, w in zip(got, (want_v, want_lam), strict=True):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-6, atol=1e-6)
+    assert not np.allclose(np.asarray(got[1]), np.asarray(lam))  # the rows did change

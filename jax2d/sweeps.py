@@ -10,6 +10,7 @@ restitution stage (restitution.py) and the static walls' push-out (static_walls.
 from __future__ import annotations
 
 import functools
+import math
 from typing import NamedTuple
 
 import jax
@@ -185,9 +186,9 @@ def chain(first: Schedule, then: Schedule, repeats: int) -> Chain:
 def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: Schedule | Chain, *inputs):
     """Run `solve_colour(vels, lam, points, const_block, *input_rows) -> (vels, lam)` on every live
     colour in order. vels: the colour's (6, K, *batch) VEL_ROWS; lam: its (6, K, *batch) impulse
-    rows; points: how many of the two points any slot of the colour has; const_block and
-    input_rows: the colour's rows of const and of each packed (C, F, K, *batch) input. A
-    solve_colour that changes no impulse returns lam None.
+    rows; points: how many of the two points any slot of the colour has (traced; a Python int in a small colour,
+    below; None in a fixed schedule: both); const_block and input_rows: the colour's rows of const and of each
+    packed (C, F, K, *batch) input. A solve_colour that changes no impulse returns lam None.
 
     A loop over the schedule's live colours: each iteration gathers the velocities of the K bodies
     of side a and the K of side b as one (3, 2K, *batch) array, solves, and writes them back by a
@@ -196,6 +197,13 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
     keep their impulses, which is what solving them would give. With a Chain plan, solve_colour gets the
     visit's pass as a last argument (a Python int: 0 for the first schedule's sweep, r for the r-th repeat).
     Returns the velocities and the packed (C, 6, K, *batch) impulses.
+
+    Small colours (K x batch at most FUSED_POINTS): each visit is the branch of a conditional on its point count,
+    solve_colour getting 1 or 2 as a Python int. XLA's CPU runtime runs a sequence of at most 8 thunks (kernels,
+    copies, loops, conditionals) one after the other on the calling thread, and a longer one as a graph, handing
+    independent thunks to its thread pool, which costs a heap-allocated state per run and wakes the other core's
+    worker (engine l at batch 1: 3.5 context switches a step). A visit was 12-16 thunks; as a conditional, the
+    loop body is at most 8 and so is each branch (engine l at batch 1: +26-51 %, s at 16 +13 %, m at 64 +11 %).
     """
     K = layout.per_colour
     sides, write_back = jnp.asarray(layout.solve_sides), jnp.asarray(layout.write_back)
@@ -211,10 +219,15 @@ def sweep(layout: ContactLayout, vel: Vel, solve_colour, const, impulses, plan: 
     chained = isinstance(plan, Chain)
 
     def colour(v, lam, c, i, visit_pass=()):
-        vels = gather(v, at(sides, c)).reshape((6, K) + batch)
+        def solved(points):
+            vels = gather(v, at(sides, c)).reshape((6, K) + batch)
+            vels, new = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs), *visit_pass)
+            return gather(jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1), at(write_back, c)), new
+
         points = None if plan.points is None else at(plan.points, i if chained else c)
-        vels, lam = solve_colour(vels, lam, points, Block(const, c), *(Rows(x, c) for x in inputs), *visit_pass)
-        return gather(jnp.concatenate([v, vels.reshape((3, 2 * K) + batch)], axis=1), at(write_back, c)), lam
+        if points is None or K * math.prod(batch) > FUSED_POINTS:
+            return solved(points)
+        return jax.lax.cond(points > 1, functools.partial(solved, 2), functools.partial(solved, 1))
 
     def visited(i):  # the i-th colour the sweep visits
         if chained:
@@ -278,11 +291,12 @@ def with_rows(lam, rows) -> jax.Array:
     return lam
 
 
-# for_points moves a point's push into its conditional where a colour's row holds at most this many numbers
-# (K slots x batch on one device): see there. Against 256, in one process (kinetix.bench.ab, 2 Dec 2026; s, m and
-# l have K = 4, 5 and 8, and a batch of 256 is 128 a device): env m 256 +23 %, env s 256 +9 %, engine m 256 +6 %,
-# engine s 256 +4 %. At 1,024 (l at 128 a device, s at a chunk of 256) fusing lost: engine l 256 -6 %,
-# env s 2048 -1 % (env l 256 +3 %).
+# Where a colour's row holds at most this many numbers (K slots x batch on one device), `sweep` runs each visit as
+# the branch of its point count (1 or 2) and for_points updates the points without conditionals (see sweep).
+# Measured with the earlier form of the small path (each point's push fused into its conditional), against 256,
+# in one process (kinetix.bench.ab, 2 Dec 2026; s, m and l have K = 4, 5 and 8, and a batch of 256 is 128 a
+# device): env m 256 +23 %, env s 256 +9 %, engine m 256 +6 %, engine s 256 +4 %. At 1,024 (l at 128 a device, s
+# at a chunk of 256) it lost: engine l 256 -6 %, env s 2048 -1 % (env l 256 +3 %).
 FUSED_POINTS = 768
 
 
@@ -297,20 +311,19 @@ class ImpulseRow(NamedTuple):
 
 def for_points(points, impulse_rows: tuple[ImpulseRow, ...], vels, lam, reverse: bool = False):
     """Solve the impulse rows of the points k < `points` of a colour, each row point by point (the second first
-    with `reverse`), the rows in turn.
+    with `reverse`), the rows in turn. An absent point keeps its impulse.
 
-    A point's new impulse is the branch of a conditional (k < points), so it is computed once and stored: XLA's
-    CPU fusion copies a chain of elementwise operations into each of its consumers, which would recompute it for
-    every row it changes. Point 0's condition always holds for a live colour; XLA cannot know that, so it stays
-    a conditional too. An absent point keeps its impulse, so push changes nothing. A point's update is then
-    three kernels (the impulse, the velocities, the impulses); a point loop over separate arrays took about 18.
-
-    Where a colour is small (at most FUSED_POINTS numbers a row), the push moves into the branch too, and the
-    velocities and impulses travel from point to point and row to row as one (12, K, *batch) array, the branch's
-    one result: a point's update is one kernel, whose 12 rows each compute the impulse again, which at that size
-    costs less than the two kernels it saves (engine l at batch 1: 24 kernels and copies a contact colour against
-    16). Both give the same numbers.
-    points None (a fixed schedule, jax2d/control.py): every point, without conditionals.
+    points, as `sweep` passes it:
+    - a Python int (a small colour, the visit being the branch of its point count): each point's update is one
+      kernel, the velocities and impulses travelling from point to point as one (12, K, *batch) array whose 12 rows
+      each compute the point's impulse again; at that size that costs less than the kernels a stored impulse needs;
+    - traced (a large colour): each point's new impulse is the branch of a conditional (k < points), so it is
+      computed once and stored: XLA's CPU fusion copies a chain of elementwise operations into each of its
+      consumers, which would recompute it for every row it changes. Point 0's condition always holds for a live
+      colour; XLA cannot know that, so it stays a conditional too. A point's update is then three kernels (the
+      impulse, the velocities, the impulses); a point loop over separate arrays took about 18;
+    - None (a fixed schedule, jax2d/control.py): every point, without conditionals.
+    All three give the same numbers.
     """
     order = (1, 0) if reverse else (0, 1)
     steps = [(r, k) for r in impulse_rows for k in order]
@@ -318,25 +331,19 @@ def for_points(points, impulse_rows: tuple[ImpulseRow, ...], vels, lam, reverse:
         for r, k in steps:
             vels, lam = r.push(k, vels, lam, r.accumulated(k, vels, lam))
         return vels, lam
-    if vels[0].size > FUSED_POINTS:
+    if isinstance(points, int):
+        n = vels.shape[0]
+        both = jnp.concatenate([vels, lam])
         for r, k in steps:
-            new = jax.lax.cond(points > k, functools.partial(r.accumulated, k), lambda v, lam, i=r.row + k: lam[i],
-                               vels, lam)
-            vels, lam = r.push(k, vels, lam, new)
-        return vels, lam
-
-    n = vels.shape[0]
-
-    def update(r: ImpulseRow, k: int, both):
-        vels, lam = both[:n], both[n:]
-        return jnp.concatenate(r.push(k, vels, lam, r.accumulated(k, vels, lam)))
-
-    both = jnp.concatenate([vels, lam])
+            if k < points:
+                vels, lam = both[:n], both[n:]
+                both = jnp.concatenate(r.push(k, vels, lam, r.accumulated(k, vels, lam)))
+        return both[:n], both[n:]
     for r, k in steps:
-        # Point 0 is in every live colour, and a fusion's result is stored anyway: no conditional.
-        both = update(r, k, both) if k == 0 else jax.lax.cond(points > k, functools.partial(update, r, k),
-                                                              lambda b: b, both)
-    return both[:n], both[n:]
+        new = jax.lax.cond(points > k, functools.partial(r.accumulated, k), lambda v, lam, i=r.row + k: lam[i],
+                           vels, lam)
+        vels, lam = r.push(k, vels, lam, new)
+    return vels, lam
 
 
 def apply_impulse(c: Block, kind: str, row: int, k: int, vels, lam, new, track_max: bool = False):

@@ -106,18 +106,17 @@ def test_a_chained_sweep_equals_its_sweeps_one_after_the_other(repeats, fixed):
         np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
 
 
-@pytest.mark.parametrize("fused", [False, True])
+@pytest.mark.parametrize("form", ["int", "traced"])
 @pytest.mark.parametrize("points", [1, 2])
 @pytest.mark.parametrize("reverse", [False, True])
-def test_for_points_solves_each_row_point_by_point_in_order_fused_or_not(monkeypatch, fused, points, reverse):
-    """Both forms of sweeps.for_points (the push inside the point's conditional at small colours, outside it at
-    large ones) solve the rows in turn, each point after the other, and leave an absent point (k >= points) alone."""
+def test_for_points_solves_each_row_point_by_point_in_order(form, points, reverse):
+    """Both forms of sweeps.for_points (points a Python int, as a small colour's visit passes it; traced, as a large
+    one's) solve the rows in turn, each point after the other, and leave an absent point (k >= points) alone."""
     import functools
 
     import jax2d
 
     K, B = 3, 2
-    monkeypatch.setattr(sweeps, "FUSED_POINTS", 10 ** 6 if fused else 0)
     rng = np.random.default_rng(1)
     vels = jnp.asarray(rng.random((6, K, B), np.float32))
     lam = jnp.asarray(rng.random((6, K, B), np.float32))
@@ -131,7 +130,10 @@ def test_for_points_solves_each_row_point_by_point_in_order_fused_or_not(monkeyp
 
     rows = tuple(sweeps.ImpulseRow(row, functools.partial(accumulated, row), functools.partial(push, row))
                  for row in (0, 2))
-    got = jax2d.jit(lambda v, lam, n: sweeps.for_points(n, rows, v, lam, reverse))(vels, lam, jnp.int32(points))
+    if form == "int":
+        got = jax2d.jit(lambda v, lam: sweeps.for_points(points, rows, v, lam, reverse))(vels, lam)
+    else:
+        got = jax2d.jit(lambda v, lam, n: sweeps.for_points(n, rows, v, lam, reverse))(vels, lam, jnp.int32(points))
 
     want_v, want_lam = vels, lam
     for r in rows:
@@ -141,3 +143,47 @@ def test_for_points_solves_each_row_point_by_point_in_order_fused_or_not(monkeyp
     for g, w in zip(got, (want_v, want_lam), strict=True):
         np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-6, atol=1e-6)
     assert not np.allclose(np.asarray(got[1]), np.asarray(lam))  # the rows did change
+
+
+def test_a_sweep_gives_the_same_with_small_colours_branched_by_point_count(monkeypatch):
+    """sweep's small-colour form (each visit the branch of its point count, sweeps.FUSED_POINTS) equals the
+    large-colour form (a conditional per point) on colours of one and of two points."""
+    import functools
+
+    import jax2d
+    from jax2d.math2d import Vel
+    from jax2d.pairs import contact_layout
+
+    layout = contact_layout(num_polygons=4, num_circles=2)
+    C, K, M, B = layout.num_colours, layout.per_colour, layout.num_padded, 2
+    rng = np.random.default_rng(3)
+    const = np.zeros((C, len(CONST_ROWS), K, B), np.float32)
+    const[:, CONST_ROWS.index("nmass0")] = rng.random((C, K, B)) < 0.6
+    const[:, CONST_ROWS.index("nmass1")] = (rng.random((C, K, B)) < 0.3) * const[:, CONST_ROWS.index("nmass0")]
+    const = jnp.asarray(const)
+    impulses = jnp.asarray(rng.random((C, 6, K, B), np.float32))
+    vel = Vel(*(jnp.asarray(rng.random((M, B), np.float32)) for _ in range(3)))
+    plan = sweeps.schedule(const)
+    counts = np.asarray(plan.points)[np.asarray(plan.order)[:int(plan.count)]]
+    assert set(counts.tolist()) == {1, 2}  # both kinds of colour are visited
+
+    def accumulated(row, k, vels, lam):
+        return lam[row + k] * 0.5 + vels[k].sum(axis=0) * 0.25
+
+    def push(row, k, vels, lam, new):
+        return vels + (new - lam[row + k])[None] * 0.5, lam.at[row + k].set(new)
+
+    rows = tuple(sweeps.ImpulseRow(row, functools.partial(accumulated, row), functools.partial(push, row))
+                 for row in (0, 2))
+
+    def run(limit):
+        monkeypatch.setattr(sweeps, "FUSED_POINTS", limit)
+        solve = jax2d.jit(lambda vel, imp: sweeps.sweep(
+            layout, vel, lambda v, lam, points, c: sweeps.for_points(points, rows, v, lam), const, imp, plan))
+        return solve(vel, impulses)
+
+    (small_vel, small), (large_vel, large) = run(10 ** 6), run(0)
+    np.testing.assert_allclose(np.asarray(small), np.asarray(large), rtol=1e-6, atol=1e-6)
+    for s, g in zip(small_vel, large_vel, strict=True):
+        np.testing.assert_allclose(np.asarray(s), np.asarray(g), rtol=1e-6, atol=1e-6)
+    assert not np.allclose(np.asarray(small), np.asarray(impulses))

@@ -82,6 +82,12 @@ def test_bad_workloads_are_refused(text):
         ab.parse_args(["--before", "HEAD", "--engine", text])
 
 
+def test_xl_is_an_engine_workload_but_not_an_env_one():
+    assert ab.parse_args(["--before", "HEAD", "--engine", "xl:16"]).engine == [("xl", 16)]
+    with pytest.raises(SystemExit):
+        ab.parse_args(["--before", "HEAD", "--env", "xl:16"])
+
+
 def test_nothing_to_measure_is_refused(capsys):
     with pytest.raises(SystemExit):
         ab.parse_args(["--before", "HEAD"])

@@ -137,15 +137,21 @@ def summary(what: str, size: str, batch: int, steps: int, before_s: list[float],
     }
 
 
-def parse_workloads(text: str) -> list[tuple[str, int]]:
+def parse_workloads(text: str, sizes: tuple[str, ...] = ("s", "m", "l")) -> list[tuple[str, int]]:
     """"s:16,l:1" -> [("s", 16), ("l", 1)]; a clear error for anything else."""
     workloads = []
     for item in filter(None, text.split(",")):
         size, _, batch = item.partition(":")
-        if size not in ("s", "m", "l") or not batch.isdigit() or int(batch) < 1:
-            raise argparse.ArgumentTypeError(f"{item!r}: expected SIZE:BATCH with SIZE s, m or l and BATCH >= 1")
+        if size not in sizes or not batch.isdigit() or int(batch) < 1:
+            raise argparse.ArgumentTypeError(
+                f"{item!r}: expected SIZE:BATCH with SIZE one of {', '.join(sizes)} and BATCH >= 1")
         workloads.append((size, int(batch)))
     return workloads
+
+
+def parse_engine_workloads(text: str) -> list[tuple[str, int]]:
+    """As parse_workloads, with xl too: the engine has a built-in xl scene, the env no reference xl level."""
+    return parse_workloads(text, ("s", "m", "l", "xl"))
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -153,8 +159,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--before", required=True, help="the commit to compare this tree against")
     parser.add_argument("--env", type=parse_workloads, default=[], metavar="SIZE:BATCH,...",
                         help="env rollouts (agent steps), e.g. s:16,s:256,l:1")
-    parser.add_argument("--engine", type=parse_workloads, default=[], metavar="SIZE:BATCH,...",
-                        help="engine rollouts of the bench's built-in scenes (physics steps)")
+    parser.add_argument("--engine", type=parse_engine_workloads, default=[], metavar="SIZE:BATCH,...",
+                        help="engine rollouts of the bench's built-in scenes (physics steps), xl included")
     parser.add_argument("--rounds", type=int, default=DEFAULT_ROUNDS, help="timed runs per side and workload")
     parser.add_argument("--steps", type=int, default=DEFAULT_STEPS, help="steps per rollout")
     parser.add_argument("--level", action="append", default=[], metavar="SIZE=FILE",
